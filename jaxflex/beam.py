@@ -1,0 +1,347 @@
+"""Assumed-mode model of a single-link flexible arm: a rotating Euler-Bernoulli beam on a hub.
+
+Kinematics (small deflections, horizontal plane, no gravity): a point at distance x along
+the beam moves transversally by ``y(x, t) = x theta(t) + v(x, t)`` with the elastic
+deflection ``v(x, t) = sum_i phi_i(x) q_i(t)`` expanded in ``n`` clamped-free cantilever
+mode shapes. The energies of NOTES.md (plus an optional tip payload of mass ``m_p`` and
+rotary inertia ``J_p``) give ``M Q'' + D Q' + K Q = F`` with ``Q = [theta, q_1..q_n]``.
+
+Mode shapes are normalised so that ``int_0^L phi_i^2 dx = L``; then ``|phi_i(L)| = 2``. This
+only sets the scale of the modal coordinates ``q_i`` (metres at the tip / 2).
+
+All matrix entries are closed forms in the physical parameters, so every quantity here is
+differentiable with respect to them:
+
+* ``M[0, 0] = I_H + rho A L^3 / 3 + m_p L^2 + J_p``
+* ``M[0, i] = rho A int x phi_i dx + m_p L phi_i(L) + J_p phi_i'(L)``, with
+  ``int_0^L x phi_i dx = 2 / beta_i^2`` (integrate ``phi'''' = beta^4 phi`` by parts)
+* ``M[i, j] = rho A L delta_ij + m_p phi_i(L) phi_j(L) + J_p phi_i'(L) phi_j'(L)``
+* ``K[i, j] = E I beta_i^4 L delta_ij`` (``K[0, :] = 0``: the hub is free)
+* ``D = alpha M + beta K`` (Rayleigh).
+
+The dimensionless roots ``lambda_i = beta_i L`` of ``1 + cos(lambda) cosh(lambda) = 0`` are
+computed once in NumPy: they depend only on the (static) number of modes.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.typing import ArrayLike
+
+
+class BeamParams(NamedTuple):
+    """Physical constants of the arm, SI units; defaults are the paper's aluminium link.
+
+    Every field is a leaf, so jax.grad works with respect to any of them.
+
+    Attributes:
+      length_m: beam length L (m).
+      width_m: cross-section width b (m).
+      thickness_m: cross-section thickness h (m); second moment of area is b h^3 / 12.
+      youngs_modulus_pa: E (N/m^2).
+      density_kg_m3: rho (kg/m^3).
+      hub_inertia_kg_m2: hub inertia I_H (kg m^2).
+      payload_mass_kg: tip payload mass m_p (kg); 0 in the paper.
+      payload_inertia_kg_m2: tip payload rotary inertia J_p about the tip (kg m^2); 0 in the paper.
+      damping_ratio: modal damping ratio given to the two flexible modes of the 2-mode model
+        of these parameters, from which the Rayleigh coefficients are derived (jaxflex
+        convention; the paper gives no values). Ignored when both Rayleigh fields are set.
+      rayleigh_alpha: mass-proportional Rayleigh coefficient (1/s), or None to derive it.
+      rayleigh_beta: stiffness-proportional Rayleigh coefficient (s), or None to derive it.
+    """
+
+    length_m: ArrayLike = 0.9
+    width_m: ArrayLike = 19.008e-3
+    thickness_m: ArrayLike = 3.2004e-3
+    youngs_modulus_pa: ArrayLike = 71e9
+    density_kg_m3: ArrayLike = 2710.0
+    hub_inertia_kg_m2: ArrayLike = 5.8598e-4
+    payload_mass_kg: ArrayLike = 0.0
+    payload_inertia_kg_m2: ArrayLike = 0.0
+    damping_ratio: ArrayLike = 0.01
+    rayleigh_alpha: ArrayLike | None = None
+    rayleigh_beta: ArrayLike | None = None
+
+
+class ModalMatrices(NamedTuple):
+    """Second-order model ``M Q'' + D Q' + K Q = F`` with ``Q = [theta, q_1..q_n]``.
+
+    Attributes:
+      M: [n+1, n+1] mass matrix (kg m^2 / kg m / kg blocks).
+      K: [n+1, n+1] stiffness matrix.
+      D: [n+1, n+1] Rayleigh damping matrix.
+      torque_input: [n+1] generalised force of a unit hub torque (= e_0).
+      tip_force_input: [n+1] generalised force of a unit transverse tip force: [L, phi_i(L)].
+      tip_deflection: [n+1] map from Q to the elastic tip deflection w(L) (m): [0, phi_i(L)].
+    """
+
+    M: jax.Array
+    K: jax.Array
+    D: jax.Array
+    torque_input: jax.Array
+    tip_force_input: jax.Array
+    tip_deflection: jax.Array
+
+
+_POSITIVE_FIELDS = (
+    "length_m",
+    "width_m",
+    "thickness_m",
+    "youngs_modulus_pa",
+    "density_kg_m3",
+    "hub_inertia_kg_m2",
+)
+_NONNEGATIVE_FIELDS = ("payload_mass_kg", "payload_inertia_kg_m2", "damping_ratio")
+
+
+def check_beam_params(params: BeamParams) -> None:
+    """Value checks on concrete parameters (skipped for traced leaves).
+
+    Raises:
+      ValueError: naming the field and its accepted range.
+    """
+    for name in _POSITIVE_FIELDS + _NONNEGATIVE_FIELDS + ("rayleigh_alpha", "rayleigh_beta"):
+        value = getattr(params, name)
+        if value is None or isinstance(value, jax.core.Tracer):
+            continue
+        arr = np.asarray(value, dtype=float)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"BeamParams.{name} must be finite; got {value}")
+        if name in _POSITIVE_FIELDS and not np.all(arr > 0):
+            raise ValueError(f"BeamParams.{name} must be > 0; got {value}")
+        if name not in _POSITIVE_FIELDS and not np.all(arr >= 0):
+            raise ValueError(f"BeamParams.{name} must be >= 0; got {value}")
+    if (params.rayleigh_alpha is None) != (params.rayleigh_beta is None):
+        raise ValueError("BeamParams.rayleigh_alpha and rayleigh_beta must be given together (or both None)")
+
+
+def check_n_modes(n_modes: int) -> int:
+    """The number of assumed modes must be a Python int >= 1 (it sets array shapes)."""
+    if isinstance(n_modes, bool) or not isinstance(n_modes, (int, np.integer)) or n_modes < 1:
+        raise ValueError(f"n_modes must be an integer >= 1; got {n_modes!r}")
+    return int(n_modes)
+
+
+@lru_cache(maxsize=None)
+def _clamped_free_constants(n_modes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Dimensionless constants of the first n clamped-free modes (NumPy float64).
+
+    Returns:
+      lam: [n] roots lambda_i = beta_i L of 1 + cos(lambda) cosh(lambda) = 0.
+      tip_value: [n] phi_i(L) (= +-2 for the normalisation int phi^2 = L).
+      tip_slope: [n] L phi_i'(L) / lambda_i, i.e. phi_i'(L) = tip_slope * lambda_i / L.
+    """
+    lam = np.empty(n_modes)
+    for i in range(n_modes):
+        z = (2 * i + 1) * math.pi / 2  # asymptotic root; cos(z) + 1/cosh(z) = 0 is well scaled
+        for _ in range(60):
+            f = math.cos(z) + 1.0 / math.cosh(z)
+            df = -math.sin(z) - math.tanh(z) / math.cosh(z)
+            step = f / df
+            z -= step
+            if abs(step) < 1e-15 * z:
+                break
+        lam[i] = z
+    sh, ch, s, c = np.sinh(lam), np.cosh(lam), np.sin(lam), np.cos(lam)
+    # phi(L) = cosh - cos - sigma (sinh - sin), sigma = (cosh + cos) / (sinh + sin), simplified.
+    tip_value = 2.0 * (ch * s - c * sh) / (sh + s)
+    tip_slope = 2.0 * sh * s / (sh + s)
+    return lam, tip_value, tip_slope
+
+
+def clamped_free_roots(n_modes: int) -> np.ndarray:
+    """[n] roots lambda_i = beta_i L of the clamped-free frequency equation (dimensionless)."""
+    return _clamped_free_constants(check_n_modes(n_modes))[0].copy()
+
+
+def mode_shapes(x_over_l: ArrayLike, n_modes: int) -> jax.Array:
+    """Clamped-free mode shapes phi_i at positions x / L (dimensionless, int phi^2 dx = L).
+
+    Evaluated in a cancellation-free form, so high modes stay accurate in float32.
+
+    Args:
+      x_over_l: [P] positions along the beam as a fraction of L, in [0, 1].
+      n_modes: number of modes (static).
+
+    Returns:
+      [P, n_modes] mode-shape values.
+    """
+    lam = jnp.asarray(_clamped_free_constants(check_n_modes(n_modes))[0])
+    xi = jnp.asarray(x_over_l)
+    lam = lam.astype(jnp.result_type(xi, float))
+    z = xi[:, None] * lam[None, :]
+    s_l, c_l = jnp.sin(lam), jnp.cos(lam)
+    e_l = jnp.exp(-lam)
+    # cosh z - sigma sinh z = ((1 - sigma) e^z + (1 + sigma) e^-z) / 2, with
+    # (1 - sigma) e^z = 2 (sin L - cos L - e^-L) e^(z - L) / (1 - e^-2L + 2 sin L e^-L).
+    denom = 1.0 - e_l**2 + 2.0 * s_l * e_l
+    one_minus_sigma_ez = 2.0 * (s_l - c_l - e_l)[None, :] * jnp.exp(z - lam[None, :]) / denom[None, :]
+    sigma = 1.0 - 2.0 * (s_l - c_l - e_l) * e_l / denom
+    hyper = 0.5 * (one_minus_sigma_ez + (1.0 + sigma)[None, :] * jnp.exp(-z))
+    return hyper - jnp.cos(z) + sigma[None, :] * jnp.sin(z)
+
+
+def _structural(params: BeamParams, n_modes: int):
+    """Mass and stiffness matrices and input maps (no damping)."""
+    lam_np, tip_np, slope_np = _clamped_free_constants(n_modes)
+    length = jnp.asarray(params.length_m)
+    dtype = jnp.result_type(length, params.youngs_modulus_pa, params.density_kg_m3, float)
+    length = length.astype(dtype)
+    lam = jnp.asarray(lam_np, dtype)
+    tip = jnp.asarray(tip_np, dtype)
+    beta = lam / length
+    tip_slope = jnp.asarray(slope_np, dtype) * beta
+    area = params.width_m * params.thickness_m
+    rho_a = params.density_kg_m3 * area
+    e_i = params.youngs_modulus_pa * params.width_m * params.thickness_m**3 / 12.0
+    m_p, j_p = params.payload_mass_kg, params.payload_inertia_kg_m2
+
+    m00 = params.hub_inertia_kg_m2 + rho_a * length**3 / 3.0 + m_p * length**2 + j_p
+    m0i = rho_a * 2.0 / beta**2 + m_p * length * tip + j_p * tip_slope
+    mij = rho_a * length * jnp.eye(n_modes, dtype=dtype) + m_p * jnp.outer(tip, tip) + j_p * jnp.outer(tip_slope, tip_slope)
+    M = jnp.block([[jnp.reshape(m00, (1, 1)), m0i[None, :]], [m0i[:, None], mij]]).astype(dtype)
+    k_diag = jnp.concatenate([jnp.zeros((1,), dtype), e_i * beta**4 * length])
+    K = jnp.diag(k_diag).astype(dtype)
+    zero = jnp.zeros((1,), dtype)
+    torque_input = jnp.concatenate([jnp.ones((1,), dtype), jnp.zeros((n_modes,), dtype)])
+    tip_force_input = jnp.concatenate([jnp.reshape(length, (1,)), tip])
+    tip_deflection = jnp.concatenate([zero, tip])
+    return M, K, torque_input, tip_force_input, tip_deflection
+
+
+def _undamped_eigenvalues(M: jax.Array, K: jax.Array) -> jax.Array:
+    """Ascending eigenvalues omega^2 of K v = omega^2 M v (M symmetric positive definite)."""
+    chol = jnp.linalg.cholesky(M)
+    left = jax.scipy.linalg.solve_triangular(chol, K, lower=True)
+    sym = jax.scipy.linalg.solve_triangular(chol, left.T, lower=True)
+    return jnp.linalg.eigvalsh(0.5 * (sym + sym.T))
+
+
+def _flexible_omegas(M: jax.Array, K: jax.Array) -> jax.Array:
+    """[n] flexible natural frequencies (rad/s): the rigid-body zero eigenvalue is dropped."""
+    eig = _undamped_eigenvalues(M, K)[1:]
+    return jnp.sqrt(jnp.maximum(eig, 0.0))
+
+
+def rayleigh_coefficients(params: BeamParams) -> tuple[jax.Array, jax.Array]:
+    """Rayleigh (alpha, beta) of these parameters.
+
+    When ``params.rayleigh_alpha`` and ``rayleigh_beta`` are set they are returned.
+    Otherwise both flexible modes of the 2-mode model get ``damping_ratio`` z:
+    ``alpha = 2 z w1 w2 / (w1 + w2)``, ``beta = 2 z / (w1 + w2)``. The same numbers are used
+    whatever number of modes the simulated model has.
+    """
+    if params.rayleigh_alpha is not None:
+        return jnp.asarray(params.rayleigh_alpha), jnp.asarray(params.rayleigh_beta)
+    M, K, *_ = _structural(params, 2)
+    w1, w2 = _flexible_omegas(M, K)
+    z = params.damping_ratio
+    return 2.0 * z * w1 * w2 / (w1 + w2), 2.0 * z / (w1 + w2)
+
+
+def modal_matrices(params: BeamParams, n_modes: int = 2) -> ModalMatrices:
+    """Mass, stiffness and Rayleigh damping matrices of the n-mode model (closed form).
+
+    Args:
+      params: physical constants.
+      n_modes: number of clamped-free assumed modes (static Python int >= 1).
+
+    Returns:
+      ModalMatrices with [n+1, n+1] matrices and [n+1] input/output maps.
+    """
+    n_modes = check_n_modes(n_modes)
+    check_beam_params(params)
+    M, K, torque_input, tip_force_input, tip_deflection = _structural(params, n_modes)
+    alpha, beta = rayleigh_coefficients(params)
+    D = alpha * M + beta * K
+    return ModalMatrices(M, K, D, torque_input, tip_force_input, tip_deflection)
+
+
+def natural_frequencies_hz(params: BeamParams, n_modes: int = 2) -> jax.Array:
+    """[n] undamped flexible natural frequencies (Hz) of the unactuated n-mode model, ascending.
+
+    The hub is free (no torque), so the rigid-body mode at 0 Hz is excluded.
+    """
+    n_modes = check_n_modes(n_modes)
+    check_beam_params(params)
+    M, K, *_ = _structural(params, n_modes)
+    return _flexible_omegas(M, K) / (2.0 * jnp.pi)
+
+
+def _exact_determinant(lam: float, mu: float, j: float, r: float) -> float:
+    """Determinant of the boundary conditions of the hub-beam-payload frequency equation.
+
+    ``Y = c1 cosh + c2 cos + c3 sinh + c4 sin`` (argument lambda x / L) with Y(0) = 0,
+    EI Y''(0) = -I_H w^2 Y'(0), EI Y''(L) = J_p w^2 Y'(L), EI Y'''(L) = -m_p w^2 Y(L);
+    mu = I_H / (rho A L^3), j = J_p / (rho A L^3), r = m_p / (rho A L). Rows are scaled by
+    e^-lambda so the entries stay O(1).
+    """
+    sh, ch, s, c = math.sinh(lam), math.cosh(lam), math.sin(lam), math.cos(lam)
+    scale = math.exp(-lam)
+    l3 = lam**3
+    rows = [
+        [1.0, 1.0, 0.0, 0.0],
+        [1.0, -1.0, mu * l3, mu * l3],
+        [
+            scale * (ch - j * l3 * sh),
+            scale * (-c + j * l3 * s),
+            scale * (sh - j * l3 * ch),
+            scale * (-s - j * l3 * c),
+        ],
+        [
+            scale * (sh + r * lam * ch),
+            scale * (s + r * lam * c),
+            scale * (ch + r * lam * sh),
+            scale * (-c + r * lam * s),
+        ],
+    ]
+    return float(np.linalg.det(np.array(rows)))
+
+
+def exact_natural_frequencies_hz(params: BeamParams, n_freqs: int = 2) -> np.ndarray:
+    """The first flexible frequencies (Hz) of the continuous hub-beam(-payload) system.
+
+    Roots of the exact frequency equation of the Euler-Bernoulli beam clamped to a free
+    hub (see ``_exact_determinant``), found by a sign-change scan in lambda = beta L and
+    bisection, in NumPy float64. Not differentiable: it is the reference that the
+    assumed-mode frequencies converge to from above as n grows.
+    """
+    n_freqs = check_n_modes(n_freqs)
+    check_beam_params(params)
+    p = {name: float(np.asarray(getattr(params, name))) for name in _POSITIVE_FIELDS + _NONNEGATIVE_FIELDS}
+    rho_a = p["density_kg_m3"] * p["width_m"] * p["thickness_m"]
+    e_i = p["youngs_modulus_pa"] * p["width_m"] * p["thickness_m"] ** 3 / 12.0
+    length = p["length_m"]
+    mu = p["hub_inertia_kg_m2"] / (rho_a * length**3)
+    j = p["payload_inertia_kg_m2"] / (rho_a * length**3)
+    r = p["payload_mass_kg"] / (rho_a * length)
+
+    def f(lam: float) -> float:
+        return _exact_determinant(lam, mu, j, r)
+
+    roots: list[float] = []
+    grid = np.arange(0.05, (n_freqs + 2) * math.pi + 1.0, 0.01)
+    values = [f(x) for x in grid]
+    for a, b, fa, fb in zip(grid[:-1], grid[1:], values[:-1], values[1:]):
+        if fa == 0.0 or fa * fb < 0:
+            lo, hi, flo = a, b, fa
+            for _ in range(200):
+                mid = 0.5 * (lo + hi)
+                fm = f(mid)
+                if flo * fm <= 0:
+                    hi = mid
+                else:
+                    lo, flo = mid, fm
+                if hi - lo < 1e-14 * hi:
+                    break
+            roots.append(0.5 * (lo + hi))
+            if len(roots) == n_freqs:
+                break
+    lam = np.array(roots)
+    return lam**2 / length**2 * math.sqrt(e_i / rho_a) / (2 * math.pi)

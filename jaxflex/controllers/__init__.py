@@ -1,0 +1,7 @@
+"""Controllers: each a pure ``(init, step, check)`` triple over a parameter pytree."""
+
+from jaxflex.controllers.base import Controller, OpenLoopParams, combine, open_loop
+from jaxflex.controllers.dfs import DFSParams, dfs
+from jaxflex.controllers.pd import PDParams, pd
+
+__all__ = ["Controller", "OpenLoopParams", "combine", "open_loop", "DFSParams", "dfs", "PDParams", "pd"]

@@ -1,0 +1,96 @@
+"""The controller protocol shared by every controller, and the sum of two controllers.
+
+A controller is a pair of pure functions over a parameter pytree (like
+``optax.GradientTransformation``), plus a value check that runs once on concrete
+parameters before tracing:
+
+* ``init(params, y0) -> state``: ``y0`` is the first measurement ``[n_y]``.
+* ``step(params, state, y) -> (state, u)``: ``y`` is the measurement ``[n_y]`` at this
+  sample; ``u`` is the torque ``[n_u]`` (N*m) held over the next sample.
+* ``check(params)``: raises ``ValueError`` naming the parameter and its accepted range.
+  Called only with concrete (non-traced) parameters.
+
+The measurement of the single-link arm is ``y = [theta (rad), theta_dot (rad/s)]`` and
+``n_u = 1``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+class Controller(NamedTuple):
+    """A controller: ``init``, ``step`` and ``check`` (see the module docstring)."""
+
+    init: Callable[[Any, jax.Array], Any]
+    step: Callable[[Any, Any, jax.Array], tuple[Any, jax.Array]]
+    check: Callable[[Any], None]
+
+
+def is_concrete(tree: Any) -> bool:
+    """True when no leaf of ``tree`` is a tracer, so value checks can run."""
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree))
+
+
+def check_finite_scalar(name: str, value: Any, *, positive: bool = False, nonnegative: bool = False) -> float:
+    """Value check on a concrete scalar parameter; returns it as a float.
+
+    Raises:
+      ValueError: naming ``name`` and the accepted range when ``value`` is not a finite
+        scalar (and positive / non-negative where asked).
+    """
+    arr = jnp.asarray(value)
+    if arr.ndim != 0:
+        raise ValueError(f"{name} must be a scalar; got shape {arr.shape}")
+    v = float(arr)
+    if positive and not (v > 0 and v < float("inf")):
+        raise ValueError(f"{name} must be finite and > 0; got {v}")
+    if nonnegative and not (v >= 0 and v < float("inf")):
+        raise ValueError(f"{name} must be finite and >= 0; got {v}")
+    if not (abs(v) < float("inf")):
+        raise ValueError(f"{name} must be finite; got {v}")
+    return v
+
+
+class OpenLoopParams(NamedTuple):
+    """The open loop has no parameters."""
+
+
+def open_loop() -> Controller:
+    """The uncontrolled arm: ``u = 0``."""
+
+    def init(params: OpenLoopParams, y0: jax.Array) -> tuple[()]:
+        del params, y0
+        return ()
+
+    def step(params: OpenLoopParams, state: tuple[()], y: jax.Array) -> tuple[tuple[()], jax.Array]:
+        del params
+        return state, jnp.zeros((1,), y.dtype)
+
+    return Controller(init, step, lambda params: None)
+
+
+def combine(first: Controller, second: Controller) -> Controller:
+    """The sum of two controllers: ``u = u_first + u_second``.
+
+    Parameters and states are pairs ``(first, second)``.
+    """
+
+    def init(params: tuple[Any, Any], y0: jax.Array) -> tuple[Any, Any]:
+        return first.init(params[0], y0), second.init(params[1], y0)
+
+    def step(params: tuple[Any, Any], state: tuple[Any, Any], y: jax.Array) -> tuple[tuple[Any, Any], jax.Array]:
+        s1, u1 = first.step(params[0], state[0], y)
+        s2, u2 = second.step(params[1], state[1], y)
+        return (s1, s2), u1 + u2
+
+    def check(params: tuple[Any, Any]) -> None:
+        if not (isinstance(params, tuple) and len(params) == 2):
+            raise ValueError("params of a combined controller must be a pair (first, second)")
+        first.check(params[0])
+        second.check(params[1])
+
+    return Controller(init, step, check)

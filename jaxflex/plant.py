@@ -1,0 +1,138 @@
+"""State-space plant of the flexible arm and its discretisation.
+
+State (jaxflex convention): ``x = [theta, q_1..q_n, theta_dot, q_1_dot..q_n_dot]`` (rad, m,
+rad/s, m/s), so ``n_x = 2 (n + 1)``. Inputs: hub torque ``u`` [1] (N*m) and a transverse
+tip force ``w`` [1] (N). Outputs:
+
+* measured ``y = C x = [theta, theta_dot]`` (what the controllers see);
+* performance outputs ``z = Cz x = [theta, w(L), L theta + w(L)]``: hub angle (rad),
+  elastic tip deflection (m), tip position (m).
+
+Discretisation with the inputs held over each sample (zero-order hold), by two methods:
+
+* ``"zoh"``: exact, ``expm([[A, B, E], [0, 0, 0]] dt)`` (python-control's block-expm idea);
+* ``"rk4"``: the paper's classical fourth-order Runge-Kutta. For a linear plant with held
+  inputs one RK4 step is exactly ``x+ = P(hA) x + h Q(hA) [B E] [u; w]`` with
+  ``P(M) = I + M + M^2/2 + M^3/6 + M^4/24`` and ``Q(M) = I + M/2 + M^2/6 + M^3/24``, so both
+  methods give one linear map ``x+ = Ad x + Bd u + Ed w`` and share one rollout. The tests
+  check this map against a literal stage-by-stage RK4.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.typing import ArrayLike
+
+from jaxflex import beam
+
+
+class LinearPlant(NamedTuple):
+    """Continuous-time plant ``x' = A x + B u + E w``, ``y = C x``, ``z = Cz x``.
+
+    Attributes:
+      A: [n_x, n_x] state matrix.
+      B: [n_x, 1] hub-torque input (N*m).
+      E: [n_x, 1] tip-force input (N).
+      C: [2, n_x] measurement map: hub angle (rad), hub velocity (rad/s).
+      Cz: [3, n_x] performance outputs: hub angle (rad), tip deflection (m), tip position (m).
+    """
+
+    A: jax.Array
+    B: jax.Array
+    E: jax.Array
+    C: jax.Array
+    Cz: jax.Array
+
+
+class DiscretePlant(NamedTuple):
+    """Sampled plant ``x[k+1] = Ad x[k] + Bd u[k] + Ed w[k]`` with sample time ``dt``.
+
+    Attributes:
+      Ad: [n_x, n_x]; Bd: [n_x, 1]; Ed: [n_x, 1]; C: [2, n_x]; Cz: [3, n_x] (as LinearPlant).
+      dt: shape () sample time (s).
+    """
+
+    Ad: jax.Array
+    Bd: jax.Array
+    Ed: jax.Array
+    C: jax.Array
+    Cz: jax.Array
+    dt: jax.Array
+
+
+OUTPUT_NAMES = ("hub_angle_rad", "tip_deflection_m", "tip_position_m")
+METHODS = ("rk4", "zoh")
+
+
+def n_modes_of(plant: LinearPlant | DiscretePlant) -> int:
+    """Number of assumed modes, read from the (static) state dimension."""
+    return plant.C.shape[1] // 2 - 1
+
+
+def make_plant(params: beam.BeamParams | None = None, n_modes: int = 2) -> LinearPlant:
+    """Continuous-time state space of the n-mode arm (differentiable in ``params``).
+
+    Args:
+      params: physical constants; default the paper's arm.
+      n_modes: number of assumed modes (static int >= 1).
+    """
+    params = beam.BeamParams() if params is None else params
+    mats = beam.modal_matrices(params, n_modes)
+    n_q = mats.M.shape[0]
+    dtype = mats.M.dtype
+    minv = jnp.linalg.inv(mats.M)
+    eye, zeros = jnp.eye(n_q, dtype=dtype), jnp.zeros((n_q, n_q), dtype)
+    A = jnp.block([[zeros, eye], [-minv @ mats.K, -minv @ mats.D]])
+    pad = jnp.zeros((n_q, 1), dtype)
+    B = jnp.concatenate([pad, (minv @ mats.torque_input)[:, None]])
+    E = jnp.concatenate([pad, (minv @ mats.tip_force_input)[:, None]])
+    hub = jnp.zeros((2 * n_q,), dtype).at[0].set(1.0)
+    hub_rate = jnp.zeros((2 * n_q,), dtype).at[n_q].set(1.0)
+    C = jnp.stack([hub, hub_rate])
+    tip = jnp.concatenate([mats.tip_deflection, jnp.zeros((n_q,), dtype)])
+    length = jnp.asarray(params.length_m, dtype)
+    Cz = jnp.stack([hub, tip, length * hub + tip])
+    return LinearPlant(A, B, E, C, Cz)
+
+
+def check_dt(dt: ArrayLike) -> None:
+    """Value check of a concrete sample time."""
+    if isinstance(dt, jax.core.Tracer):
+        return
+    arr = np.asarray(dt, dtype=float)
+    if arr.ndim != 0 or not np.isfinite(arr) or arr <= 0:
+        raise ValueError(f"dt must be a finite scalar > 0 (seconds); got {dt}")
+
+
+def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") -> DiscretePlant:
+    """Sample the plant with inputs held over each step of ``dt`` seconds.
+
+    Args:
+      plant: continuous-time plant.
+      dt: sample time (s), finite and > 0; default 1 ms (the paper's 1 kHz).
+      method: ``"rk4"`` (the paper's integrator) or ``"zoh"`` (exact).
+    """
+    check_dt(dt)
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    n_x = plant.A.shape[0]
+    dtype = plant.A.dtype
+    dt = jnp.asarray(dt, dtype)
+    inputs = jnp.concatenate([plant.B, plant.E], axis=1)  # [n_x, 2]
+    if method == "zoh":
+        block = jnp.zeros((n_x + 2, n_x + 2), dtype)
+        block = block.at[:n_x, :n_x].set(plant.A).at[:n_x, n_x:].set(inputs)
+        phi = jax.scipy.linalg.expm(block * dt)
+        Ad, Gd = phi[:n_x, :n_x], phi[:n_x, n_x:]
+    else:
+        ha = dt * plant.A
+        eye = jnp.eye(n_x, dtype=dtype)
+        # Horner form of the Taylor polynomials P and Q of the module docstring.
+        q = eye + ha @ (eye / 2 + ha @ (eye / 6 + ha / 24))
+        Ad = eye + ha @ q
+        Gd = dt * q @ inputs
+    return DiscretePlant(Ad, Gd[:, :1], Gd[:, 1:], plant.C, plant.Cz, dt)
