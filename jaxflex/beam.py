@@ -26,7 +26,7 @@ computed once in NumPy: they depend only on the (static) number of modes.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
+from functools import lru_cache, partial
 from typing import NamedTuple
 
 import jax
@@ -187,8 +187,9 @@ def mode_shapes(x_over_l: ArrayLike, n_modes: int) -> jax.Array:
     return hyper - jnp.cos(z) + sigma[None, :] * jnp.sin(z)
 
 
+@partial(jax.jit, static_argnums=1)
 def _structural(params: BeamParams, n_modes: int):
-    """Mass and stiffness matrices and input maps (no damping)."""
+    """Mass and stiffness matrices and input maps (no damping); jitted so eager calls are cheap."""
     lam_np, tip_np, slope_np = _clamped_free_constants(n_modes)
     length = jnp.asarray(params.length_m)
     dtype = jnp.result_type(length, params.youngs_modulus_pa, params.density_kg_m3, float)
@@ -215,6 +216,7 @@ def _structural(params: BeamParams, n_modes: int):
     return M, K, torque_input, tip_force_input, tip_deflection
 
 
+@jax.jit
 def _undamped_eigenvalues(M: jax.Array, K: jax.Array) -> jax.Array:
     """Ascending eigenvalues omega^2 of K v = omega^2 M v (M symmetric positive definite)."""
     chol = jnp.linalg.cholesky(M)

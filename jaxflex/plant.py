@@ -20,6 +20,7 @@ Discretisation with the inputs held over each sample (zero-order hold), by two m
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -81,6 +82,12 @@ def make_plant(params: beam.BeamParams | None = None, n_modes: int = 2) -> Linea
       n_modes: number of assumed modes (static int >= 1).
     """
     params = beam.BeamParams() if params is None else params
+    beam.check_beam_params(params)
+    return _make_plant(params, beam.check_n_modes(n_modes))
+
+
+@partial(jax.jit, static_argnums=1)
+def _make_plant(params: beam.BeamParams, n_modes: int) -> LinearPlant:
     mats = beam.modal_matrices(params, n_modes)
     n_q = mats.M.shape[0]
     dtype = mats.M.dtype
@@ -119,6 +126,11 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") ->
     check_dt(dt)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    return _discretize(plant, dt, method)
+
+
+@partial(jax.jit, static_argnums=2)
+def _discretize(plant: LinearPlant, dt: ArrayLike, method: str) -> DiscretePlant:
     n_x = plant.A.shape[0]
     dtype = plant.A.dtype
     dt = jnp.asarray(dt, dtype)

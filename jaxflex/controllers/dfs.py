@@ -22,7 +22,7 @@ from jax.typing import ArrayLike
 from jaxflex import delay
 from jaxflex.controllers.base import Controller, check_finite_scalar
 
-_WHOLE_SAMPLE_RTOL = 1e-9  # tau / dt within this of an integer counts as a whole number of samples
+_WHOLE_SAMPLE_RTOL = 1e-6  # tau / dt within this of an integer is a whole number of samples (float32 round-off)
 
 
 class DFSParams(NamedTuple):

@@ -1,0 +1,192 @@
+"""Beam model: closed forms against quadrature, convergence to the exact frequency equation,
+differentiability against finite differences, and input validation."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import integrate, optimize
+
+from jaxflex import beam
+from jaxflex.beam import BeamParams
+
+RTOL_QUAD = 1e-9  # adaptive quadrature of smooth mode shapes in float64
+RTOL_ROOT = 1e-9  # brentq to machine precision; frequencies are algebraic in the roots
+RTOL_FD = 1e-6  # central difference with a relative step of 1e-4, float64
+
+
+def _exact_no_payload_hz(params: BeamParams, count: int) -> np.ndarray:
+    """Roots of the scalar hub-beam frequency equation, derived by hand for no payload:
+    (sin l cosh l - cos l sinh l) + mu l^3 (1 + cos l cosh l) = 0, mu = I_H / (rho A L^3).
+    Limits: mu -> inf gives the clamped-free equation, mu -> 0 the pinned-free one."""
+    rho_a = params.density_kg_m3 * params.width_m * params.thickness_m
+    e_i = params.youngs_modulus_pa * params.width_m * params.thickness_m**3 / 12
+    mu = params.hub_inertia_kg_m2 / (rho_a * params.length_m**3)
+
+    def f(lam):  # divided by cosh(lam) to stay O(1)
+        return (math.sin(lam) - math.cos(lam) * math.tanh(lam)) + mu * lam**3 * (1 / math.cosh(lam) + math.cos(lam))
+
+    grid = np.linspace(0.1, (count + 2) * math.pi, 20000)
+    vals = np.array([f(x) for x in grid])
+    roots = [optimize.brentq(f, a, b, xtol=1e-15) for a, b, fa, fb in zip(grid[:-1], grid[1:], vals[:-1], vals[1:]) if fa * fb < 0]
+    lam = np.array(roots[:count])
+    return lam**2 / params.length_m**2 * math.sqrt(e_i / rho_a) / (2 * math.pi)
+
+
+def test_clamped_free_roots_solve_frequency_equation():
+    lam = beam.clamped_free_roots(6)
+    np.testing.assert_allclose(np.cos(lam) + 1 / np.cosh(lam), 0.0, atol=1e-14)  # well-scaled form of 1 + cos cosh = 0
+    np.testing.assert_allclose(lam[:2], [1.8751040687, 4.6940911330], rtol=1e-10)  # textbook values
+
+
+def test_mode_shapes_normalisation_and_closed_forms():
+    n = 6
+    lam = beam.clamped_free_roots(n)
+    for i in range(n):
+        phi = lambda xi: float(beam.mode_shapes(np.array([xi]), n)[0, i])
+        norm = integrate.quad(lambda xi: phi(xi) ** 2, 0, 1, limit=200)[0]
+        moment = integrate.quad(lambda xi: xi * phi(xi), 0, 1, limit=200)[0]
+        np.testing.assert_allclose(norm, 1.0, rtol=RTOL_QUAD)  # int phi^2 dx = L
+        np.testing.assert_allclose(moment, 2.0 / lam[i] ** 2, rtol=RTOL_QUAD)  # int x phi dx = 2 / beta^2 (L = 1)
+        np.testing.assert_allclose(abs(phi(1.0)), 2.0, rtol=1e-12)
+        np.testing.assert_allclose(phi(0.0), 0.0, atol=1e-12)
+
+
+def test_mass_and_stiffness_against_quadrature_with_payload():
+    params = BeamParams(payload_mass_kg=0.05, payload_inertia_kg_m2=2e-4)
+    n = 3
+    mats = beam.modal_matrices(params, n)
+    L = params.length_m
+    rho_a = params.density_kg_m3 * params.width_m * params.thickness_m
+    e_i = params.youngs_modulus_pa * params.width_m * params.thickness_m**3 / 12
+    xs = np.linspace(0, 1, 20001)
+    phi = np.asarray(beam.mode_shapes(xs, n))  # [P, n]
+    dphi = np.gradient(phi, xs * L, axis=0, edge_order=2)
+    ddphi = np.gradient(dphi, xs * L, axis=0, edge_order=2)
+    shapes = np.concatenate([xs[:, None] * L, phi], axis=1)  # y = x theta + sum phi q
+    slopes = np.concatenate([np.ones((xs.size, 1)), dphi], axis=1)
+    curv = np.concatenate([np.zeros((xs.size, 1)), ddphi], axis=1)
+    m_ref = rho_a * integrate.trapezoid(shapes[:, :, None] * shapes[:, None, :], xs * L, axis=0)
+    m_ref += params.hub_inertia_kg_m2 * np.outer(np.eye(n + 1)[0], np.eye(n + 1)[0])
+    m_ref += params.payload_mass_kg * np.outer(shapes[-1], shapes[-1]) + params.payload_inertia_kg_m2 * np.outer(slopes[-1], slopes[-1])
+    k_ref = e_i * integrate.trapezoid(curv[:, :, None] * curv[:, None, :], xs * L, axis=0)
+    np.testing.assert_allclose(np.asarray(mats.M), m_ref, rtol=1e-5, atol=1e-7 * np.abs(m_ref).max())  # finite-difference slopes
+    np.testing.assert_allclose(np.asarray(mats.K), k_ref, rtol=1e-3, atol=1e-4 * np.abs(k_ref).max())  # second differences
+
+
+def test_library_exact_frequencies_match_hand_derived_equation():
+    params = BeamParams()
+    np.testing.assert_allclose(beam.exact_natural_frequencies_hz(params, 5), _exact_no_payload_hz(params, 5), rtol=RTOL_ROOT)
+
+
+def test_payload_frequencies_converge_from_above():
+    """With a tip payload the clamped-free trial functions (zero tip shear) converge slowly, but
+    they still bound the exact roots from above and approach them monotonically."""
+    loaded_params = BeamParams(payload_mass_kg=0.1, payload_inertia_kg_m2=1e-4)
+    base = beam.exact_natural_frequencies_hz(BeamParams(), 3)
+    loaded = beam.exact_natural_frequencies_hz(loaded_params, 3)
+    assert np.all(loaded < base)  # a payload lowers every frequency
+    errors = []
+    for n in range(3, 9):
+        model = np.asarray(beam.natural_frequencies_hz(loaded_params, n))[:3]
+        assert np.all(model >= loaded * (1 - 1e-12))
+        errors.append(model / loaded - 1)
+    errors = np.array(errors)
+    assert np.all(np.diff(errors, axis=0) < 0)
+    assert errors[-1, 0] < 5e-4  # n = 8: first mode within 0.05 %
+
+
+def test_assumed_mode_frequencies_converge_from_above():
+    params = BeamParams()
+    exact = _exact_no_payload_hz(params, 6)
+    previous = None
+    errors = []
+    for n in range(1, 7):
+        f = np.asarray(beam.natural_frequencies_hz(params, n))
+        assert f.shape == (n,)
+        assert np.all(np.diff(f) > 0)
+        assert np.all(f >= exact[:n] * (1 - 1e-12)), (n, f, exact[:n])  # Rayleigh-Ritz upper bounds
+        if previous is not None:
+            assert np.all(f[: n - 1] <= previous * (1 + 1e-12))  # nested trial spaces: monotone
+        previous = f
+        errors.append(f[0] / exact[0] - 1)
+    assert errors[-1] < 1e-6 and errors[0] > 1e-2
+    assert all(b < a for a, b in zip(errors, errors[1:]))
+
+
+def test_paper_frequencies_are_not_reproduced_and_pinned_free_bound_holds():
+    """The paper's 16 Hz first mode exceeds the pinned-free bound of this beam (NOTES.md)."""
+    params = BeamParams()
+    f1 = beam.exact_natural_frequencies_hz(params, 1)[0]
+    huge_hub = beam.exact_natural_frequencies_hz(params._replace(hub_inertia_kg_m2=1e9), 1)[0]
+    tiny_hub = beam.exact_natural_frequencies_hz(params._replace(hub_inertia_kg_m2=1e-12), 1)[0]
+    assert huge_hub < f1 < tiny_hub  # the hub interpolates between clamped-free and pinned-free
+    lam_pf = optimize.brentq(lambda x: math.tan(x) - math.tanh(x), 3.5, 4.5)
+    rho_a = params.density_kg_m3 * params.width_m * params.thickness_m
+    e_i = params.youngs_modulus_pa * params.width_m * params.thickness_m**3 / 12
+    pinned_free = lam_pf**2 / params.length_m**2 * math.sqrt(e_i / rho_a) / (2 * math.pi)
+    np.testing.assert_allclose(tiny_hub, pinned_free, rtol=1e-6)
+    assert pinned_free < 16.0
+
+
+def test_rayleigh_damping_gives_requested_ratio():
+    params = BeamParams(damping_ratio=0.02)
+    mats = beam.modal_matrices(params, 2)
+    m, k, d = (np.asarray(a) for a in (mats.M, mats.K, mats.D))
+    n_q = 3
+    a = np.block([[np.zeros((n_q, n_q)), np.eye(n_q)], [-np.linalg.solve(m, k), -np.linalg.solve(m, d)]])
+    eig = np.linalg.eigvals(a)
+    osc = eig[eig.imag > 1e-6]
+    zeta = -osc.real / np.abs(osc)
+    np.testing.assert_allclose(zeta, 0.02, rtol=1e-9)
+    explicit = beam.modal_matrices(params._replace(rayleigh_alpha=0.5, rayleigh_beta=1e-4), 2)
+    np.testing.assert_allclose(np.asarray(explicit.D), 0.5 * m + 1e-4 * k, rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "field",
+    ["youngs_modulus_pa", "density_kg_m3", "hub_inertia_kg_m2", "length_m", "payload_mass_kg", "payload_inertia_kg_m2"],
+)
+def test_frequency_gradients_match_central_differences(field):
+    base = BeamParams(payload_mass_kg=0.02, payload_inertia_kg_m2=1e-5)
+    value = float(getattr(base, field))
+
+    def f(v):
+        return beam.natural_frequencies_hz(base._replace(**{field: v}), 3)
+
+    jac = np.asarray(jax.jacfwd(f)(jnp.asarray(value)))
+    grad_rev = np.asarray(jax.grad(lambda v: f(v)[1])(jnp.asarray(value)))
+    h = 1e-4 * value  # truncation O(h^2) ~ 1e-8 relative, far below RTOL_FD; smaller steps meet eigenvalue round-off
+    fd = (np.asarray(f(value + h)) - np.asarray(f(value - h))) / (2 * h)
+    np.testing.assert_allclose(jac, fd, rtol=RTOL_FD)
+    np.testing.assert_allclose(grad_rev, fd[1], rtol=RTOL_FD)
+    assert np.all(np.isfinite(jac))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(length_m=-1.0), "length_m must be > 0"),
+        (dict(youngs_modulus_pa=0.0), "youngs_modulus_pa must be > 0"),
+        (dict(density_kg_m3=float("nan")), "density_kg_m3 must be finite"),
+        (dict(hub_inertia_kg_m2=float("inf")), "hub_inertia_kg_m2 must be finite"),
+        (dict(payload_mass_kg=-0.1), "payload_mass_kg must be >= 0"),
+        (dict(rayleigh_alpha=0.1), "given together"),
+    ],
+)
+def test_bad_parameters_are_rejected(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        beam.modal_matrices(BeamParams(**kwargs), 2)
+
+
+@pytest.mark.parametrize("n", [0, -1, 2.0, True])
+def test_bad_mode_count_is_rejected(n):
+    with pytest.raises(ValueError, match="n_modes must be an integer >= 1"):
+        beam.natural_frequencies_hz(BeamParams(), n)
+
+
+def test_float32_is_preserved():
+    params = BeamParams(*(jnp.float32(v) if v is not None else None for v in BeamParams()))
+    assert beam.modal_matrices(params, 2).M.dtype == jnp.float32

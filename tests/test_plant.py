@@ -1,0 +1,132 @@
+"""Plant and discretisation: structure, literal RK4, order of convergence, scipy and python-control oracles."""
+
+import control
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+
+from jaxflex import plant as plant_mod
+from jaxflex.beam import BeamParams
+from jaxflex.plant import discretize, make_plant
+
+RTOL_EXPM = 1e-10  # two expm implementations of the same matrix, float64
+ATOL_EXPM = 1e-12  # expm is accurate relative to the matrix norm, not per element
+
+
+def _literal_rk4(A, G, x, v, h):
+    """Classical RK4 stage by stage for x' = A x + G v with v held over the step."""
+    f = lambda s: A @ s + G @ v
+    k1 = f(x)
+    k2 = f(x + h / 2 * k1)
+    k3 = f(x + h / 2 * k2)
+    k4 = f(x + h * k3)
+    return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def test_state_space_structure():
+    p = make_plant(BeamParams(), 3)
+    n_q = 4
+    A = np.asarray(p.A)
+    np.testing.assert_array_equal(A[:n_q, :n_q], 0)
+    np.testing.assert_array_equal(A[:n_q, n_q:], np.eye(n_q))
+    assert p.B.shape == (8, 1) and p.E.shape == (8, 1) and p.C.shape == (2, 8) and p.Cz.shape == (3, 8)
+    eig = np.linalg.eigvals(A)
+    assert np.sum(np.abs(eig) < 1e-9) == 1  # the rigid-body position mode
+    assert np.all(eig.real < 1e-9)
+    # tip position = L * theta + tip deflection
+    np.testing.assert_allclose(np.asarray(p.Cz[2]), 0.9 * np.asarray(p.Cz[0]) + np.asarray(p.Cz[1]))
+    assert plant_mod.n_modes_of(p) == 3
+
+
+def test_tip_force_generalised_input_matches_virtual_work():
+    """A static tip force on a hub held by a torque: the tip force input equals M^-1 [L, phi_i(L)]."""
+    params = BeamParams()
+    p = make_plant(params, 2)
+    from jaxflex import beam
+
+    mats = beam.modal_matrices(params, 2)
+    np.testing.assert_allclose(np.asarray(p.E[3:, 0]), np.linalg.solve(np.asarray(mats.M), np.asarray(mats.tip_force_input)), rtol=1e-12)
+    np.testing.assert_allclose(np.abs(np.asarray(mats.tip_force_input)), [0.9, 2.0, 2.0], rtol=1e-12)
+
+
+def test_rk4_map_equals_literal_rk4():
+    p = make_plant(BeamParams(), 2)
+    dt = 1e-3
+    d = discretize(p, dt, "rk4")
+    rng = np.random.default_rng(0)
+    x, v = rng.normal(size=6), rng.normal(size=2)
+    G = np.concatenate([np.asarray(p.B), np.asarray(p.E)], axis=1)
+    expected = _literal_rk4(np.asarray(p.A), G, x, v, dt)
+    got = np.asarray(d.Ad) @ x + np.asarray(d.Bd) @ v[:1] + np.asarray(d.Ed) @ v[1:]
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-15)
+
+
+def test_zoh_matches_scipy_expm_and_python_control_c2d():
+    p = make_plant(BeamParams(), 2)
+    dt = 1e-3
+    d = discretize(p, dt, "zoh")
+    A, B = np.asarray(p.A), np.asarray(p.B)
+    block = np.zeros((7, 7))
+    block[:6, :6], block[:6, 6:] = A, B
+    phi = scipy.linalg.expm(block * dt)
+    np.testing.assert_allclose(np.asarray(d.Ad), phi[:6, :6], rtol=RTOL_EXPM, atol=ATOL_EXPM * np.abs(phi).max())
+    np.testing.assert_allclose(np.asarray(d.Bd), phi[:6, 6:], rtol=RTOL_EXPM, atol=ATOL_EXPM * np.abs(phi[:6, 6:]).max())
+    sysd = control.c2d(control.ss(A, np.concatenate([B, np.asarray(p.E)], axis=1), np.asarray(p.C), 0), dt, method="zoh")
+    np.testing.assert_allclose(np.asarray(d.Ad), sysd.A, rtol=RTOL_EXPM, atol=ATOL_EXPM * np.abs(sysd.A).max())
+    np.testing.assert_allclose(np.asarray(d.Bd), sysd.B[:, :1], rtol=RTOL_EXPM, atol=ATOL_EXPM * np.abs(sysd.B[:, :1]).max())
+    np.testing.assert_allclose(np.asarray(d.Ed), sysd.B[:, 1:], rtol=RTOL_EXPM, atol=ATOL_EXPM * np.abs(sysd.B[:, 1:]).max())
+
+
+def test_rk4_converges_to_zoh_at_fourth_order():
+    """Same held-input signal over 0.2 s: the sup-over-time RK4 error (per state, relative to that
+    state's peak) falls by 2^4 per halving of dt, from the paper's 1 kHz down."""
+    p = make_plant(BeamParams(), 2)
+    x0 = np.array([0.0, 1e-3, 0.0, 0.0, 1e-5, 0.0])
+    errors = []
+    for dt in (1e-3, 5e-4, 2.5e-4, 1.25e-4):
+        steps = int(round(0.2 / dt))
+        u = 0.05 * np.sin(2 * np.pi * 3 * np.arange(steps) * dt)  # held input, sampled at each dt
+        runs = {}
+        for method in ("rk4", "zoh"):
+            d = discretize(p, dt, method)
+            Ad, Bd = np.asarray(d.Ad), np.asarray(d.Bd)
+            x, states = x0.copy(), []
+            for k in range(steps):
+                x = Ad @ x + Bd[:, 0] * u[k]
+                states.append(x)
+            runs[method] = np.array(states)
+        errors.append(np.max(np.abs(runs["rk4"] - runs["zoh"]) / np.max(np.abs(runs["zoh"]), axis=0)))
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    np.testing.assert_allclose(orders, 4.0, atol=0.1)
+    assert errors[0] < 1e-3  # 1 kHz, the paper's setting: 0.05 % of each state's peak
+
+
+def test_discretize_differentiable_against_fd():
+    def f(E):
+        p = make_plant(BeamParams(youngs_modulus_pa=E), 2)
+        return discretize(p, 1e-3, "zoh").Ad[1, 4] + discretize(p, 1e-3, "rk4").Bd[4, 0]
+
+    E = 71e9
+    g = float(jax.grad(f)(E))
+    h = 1e-4 * E
+    fd = (float(f(E + h)) - float(f(E - h))) / (2 * h)
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+@pytest.mark.parametrize("dt, match", [(0.0, "dt must be"), (-1e-3, "dt must be"), (float("nan"), "dt must be"), (np.ones(2), "dt must be")])
+def test_bad_dt_is_rejected(dt, match):
+    with pytest.raises(ValueError, match=match):
+        discretize(make_plant(), dt)
+
+
+def test_unknown_method_is_rejected():
+    with pytest.raises(ValueError, match="method must be one of"):
+        discretize(make_plant(), 1e-3, "euler")
+
+
+def test_float32_is_preserved():
+    params = BeamParams(*(jnp.float32(v) if v is not None else None for v in BeamParams()))
+    d = discretize(make_plant(params, 2), 1e-3, "zoh")
+    assert d.Ad.dtype == jnp.float32 and d.Bd.dtype == jnp.float32

@@ -1,0 +1,162 @@
+"""Closed-loop rollout: a NumPy reference loop, jit/eager and vmap/loop agreement, gradients
+against central differences, and input validation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxflex as jf
+from jaxflex.controllers import DFSParams, OpenLoopParams, PDParams, combine, dfs, open_loop, pd
+from jaxflex.scenarios import Scenario, initial_condition, paper_scenario
+from tests.helpers import tree_allclose
+
+RTOL_LOOP = 1e-10  # same arithmetic in another order, float64
+ATOL_REORDER = 1e-14  # batched matmuls sum in another order: round-off of O(1) states
+RTOL_FD = 1e-5  # the issue's bar for gradients against central differences, float64
+
+
+@pytest.fixture(scope="module")
+def plant2():
+    return jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")
+
+
+def _numpy_dfs_loop(plant, k, delay_steps, scenario):
+    """Independent reference: a plain Python loop with a list as the delay line."""
+    Ad, Bd, Ed, C = (np.asarray(a) for a in (plant.Ad, plant.Bd, plant.Ed, plant.C))
+    x = np.asarray(scenario.x0).copy()
+    force, noise = np.asarray(scenario.force), np.asarray(scenario.noise)
+    thetas, xs, us = [], [], []
+    for i in range(force.shape[0]):
+        y = C @ x + noise[i]
+        thetas.append(y[0])
+        past = thetas[max(i - delay_steps, 0)] if i - delay_steps >= 0 else thetas[0]
+        u = -k * (y[0] - past)
+        xs.append(x)
+        us.append(u)
+        x = Ad @ x + Bd[:, 0] * u + Ed[:, 0] * force[i, 0]
+    return np.array(xs), np.array(us)
+
+
+def test_dfs_rollout_matches_python_loop_with_force_and_noise(plant2):
+    rng = np.random.default_rng(0)
+    steps = 300
+    sc = Scenario(
+        jnp.asarray(paper_scenario(plant2).x0),
+        jnp.asarray(rng.normal(scale=0.1, size=(steps, 1))),
+        jnp.asarray(rng.normal(scale=1e-5, size=(steps, 2))),
+    )
+    traj = jf.rollout(plant2, dfs(), DFSParams(55.0, 0.005), sc)
+    xs, us = _numpy_dfs_loop(plant2, 55.0, 5, sc)
+    np.testing.assert_allclose(np.asarray(traj.x), xs, rtol=RTOL_LOOP, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(traj.u[:, 0]), us, rtol=RTOL_LOOP, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(traj.t), np.arange(steps) * 1e-3)
+    np.testing.assert_allclose(np.asarray(traj.z[:, 2]), 0.9 * xs[:, 0] + np.asarray(traj.z[:, 1]), rtol=1e-12)
+
+
+def test_paper_scenario_readings(plant2):
+    printed = paper_scenario(plant2)
+    block = paper_scenario(plant2, reading="block")
+    np.testing.assert_array_equal(np.asarray(printed.x0), [0, 1e-3, 0, 0, 1e-5, 0])
+    np.testing.assert_array_equal(np.asarray(block.x0), [0, 0, 1e-3, 0, 1e-5, 0])
+    assert printed.force.shape == (3000, 1) and printed.noise.shape == (3000, 2)
+    with pytest.raises(ValueError, match="reading must be one of"):
+        paper_scenario(plant2, reading="other")
+
+
+def test_jit_equals_eager(plant2):
+    sc = paper_scenario(plant2, horizon_s=0.3)
+    ctrl = combine(dfs(), pd())
+    params = (DFSParams(55.0, 0.005), PDParams(0.5, 0.05))
+    eager = jf.rollout(plant2, ctrl, params, sc)
+    jitted = jax.jit(jf.rollout, static_argnums=1)(plant2, ctrl, params, sc)
+    tree_allclose(eager, jitted, rtol=1e-12, atol=1e-16)
+
+
+def test_vmap_over_scenarios_equals_loop(plant2):
+    key = jax.random.key(0)
+    x0s = 1e-3 * jax.random.normal(key, (8, 6))
+    scs = jax.vmap(lambda x0: initial_condition(x0, 200))(x0s)
+    batched = jax.vmap(lambda sc: jf.rollout(plant2, dfs(), DFSParams(55.0, 0.005), sc))(scs)
+    for i in range(8):
+        one = jf.rollout(plant2, dfs(), DFSParams(55.0, 0.005), initial_condition(x0s[i], 200))
+        tree_allclose(jax.tree.map(lambda a: a[i], batched), one, rtol=1e-12, atol=ATOL_REORDER)
+
+
+def _tip_ise(plant, params, steps=400):
+    sc = paper_scenario(plant, horizon_s=steps * 1e-3)
+    traj = jf.rollout(plant, dfs(), params, sc)
+    return jnp.sum(traj.z[:, 1] ** 2) * 1e-3
+
+
+def test_dfs_gradient_wrt_k_matches_central_difference(plant2):
+    k = 55.0
+    g = float(jax.grad(lambda k: _tip_ise(plant2, DFSParams(k, 0.005)))(k))
+    h = 1e-4 * k
+    fd = (float(_tip_ise(plant2, DFSParams(k + h, 0.005))) - float(_tip_ise(plant2, DFSParams(k - h, 0.005)))) / (2 * h)
+    assert g != 0 and np.isfinite(g)
+    np.testing.assert_allclose(g, fd, rtol=RTOL_FD)
+
+
+def test_gradient_wrt_plant_parameter(plant2):
+    def loss(E):
+        d = jf.discretize(jf.make_plant(jf.BeamParams(youngs_modulus_pa=E), 2), 1e-3, "rk4")
+        return _tip_ise(d, DFSParams(55.0, 0.005), steps=200)
+
+    E = 71e9
+    g = float(jax.grad(loss)(E))
+    h = 1e-4 * E
+    fd = (float(loss(E + h)) - float(loss(E - h))) / (2 * h)
+    np.testing.assert_allclose(g, fd, rtol=RTOL_FD)
+
+
+def test_open_loop_conserves_energy_without_damping():
+    params = jf.BeamParams(rayleigh_alpha=0.0, rayleigh_beta=0.0)
+    p = jf.make_plant(params, 2)
+    d = jf.discretize(p, 1e-3, "zoh")
+    traj = jf.rollout(d, open_loop(), OpenLoopParams(), paper_scenario(d, horizon_s=1.0))
+    from jaxflex import beam
+
+    mats = beam.modal_matrices(params, 2)
+    q, qd = traj.x[:, :3], traj.x[:, 3:]
+    energy = 0.5 * jnp.einsum("ti,ij,tj->t", qd, mats.M, qd) + 0.5 * jnp.einsum("ti,ij,tj->t", q, mats.K, q)
+    np.testing.assert_allclose(np.asarray(energy), float(energy[0]), rtol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "params, match",
+    [
+        (DFSParams(55.0, 0.0055), "whole number of samples"),
+        (DFSParams(55.0, 0.5), r"tau_s must be in \(0, 0.064\]"),
+        (DFSParams(55.0, -0.001), "tau_s must be finite and > 0"),
+        (DFSParams(float("nan"), 0.005), "k must be finite"),
+    ],
+)
+def test_bad_dfs_parameters_are_rejected(plant2, params, match):
+    with pytest.raises(ValueError, match=match):
+        jf.rollout(plant2, dfs(), params, paper_scenario(plant2, horizon_s=0.01))
+
+
+def test_fractional_delay_accepted_with_linear_interpolation(plant2):
+    sc = paper_scenario(plant2, horizon_s=0.05)
+    traj = jf.rollout(plant2, dfs(interpolation="linear"), DFSParams(55.0, 0.0055), sc)
+    assert np.all(np.isfinite(np.asarray(traj.x)))
+
+
+def test_bad_scenario_shapes_are_rejected(plant2):
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    with pytest.raises(ValueError, match="x0 must have shape"):
+        jf.rollout(plant2, open_loop(), OpenLoopParams(), sc._replace(x0=jnp.zeros(4)))
+    with pytest.raises(ValueError, match="noise must have shape"):
+        jf.rollout(plant2, open_loop(), OpenLoopParams(), sc._replace(noise=jnp.zeros((3, 2))))
+    with pytest.raises(ValueError, match="dfs|dt must be"):
+        dfs(dt=0.0)
+
+
+def test_float32_rollout_preserves_dtype():
+    params = jf.BeamParams(*(jnp.float32(v) if v is not None else None for v in jf.BeamParams()))
+    d = jf.discretize(jf.make_plant(params, 2), 1e-3, "rk4")
+    sc = paper_scenario(d, horizon_s=0.05)
+    assert sc.x0.dtype == jnp.float32
+    traj = jf.rollout(d, dfs(), DFSParams(jnp.float32(55.0), jnp.float32(0.005)), sc)
+    assert traj.x.dtype == jnp.float32 and traj.u.dtype == jnp.float32
