@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxflex as jf
-from jaxflex.controllers import DFSParams, OpenLoopParams, PDParams, combine, dfs, open_loop, pd
+from jaxflex.controllers import DFSParams, OpenLoopParams, PDParams, combine, dfs, fuzzy, fuzzy_params, open_loop, pd
 from jaxflex.scenarios import Scenario, initial_condition, paper_scenario
 from tests.helpers import tree_allclose
 
@@ -94,6 +94,24 @@ def test_dfs_gradient_wrt_k_matches_central_difference(plant2):
     g = float(jax.grad(lambda k: _tip_ise(plant2, DFSParams(k, 0.005)))(k))
     h = 1e-4 * k
     fd = (float(_tip_ise(plant2, DFSParams(k + h, 0.005))) - float(_tip_ise(plant2, DFSParams(k - h, 0.005)))) / (2 * h)
+    assert g != 0 and np.isfinite(g)
+    np.testing.assert_allclose(g, fd, rtol=RTOL_FD)
+
+
+@pytest.mark.parametrize("field", ["k1", "k2", "k3"])
+def test_fuzzy_gradient_wrt_scaling_factors_matches_central_difference(plant2, field):
+    """At the paper's operating point, 1 s of the paper scenario, float64."""
+    sc = paper_scenario(plant2, horizon_s=1.0)
+
+    def loss(v):
+        params = fuzzy_params(1.02, 0.30, 1.0)._replace(**{field: v})
+        traj = jf.rollout(plant2, fuzzy(), params, sc)
+        return jnp.sum(traj.z[:, 1] ** 2) * 1e-3
+
+    v = float(getattr(fuzzy_params(1.02, 0.30, 1.0), field))
+    g = float(jax.jit(jax.grad(loss))(v))
+    h = 1e-5 * v  # small enough that no membership kink is crossed along the 1000 samples
+    fd = (float(loss(v + h)) - float(loss(v - h))) / (2 * h)
     assert g != 0 and np.isfinite(g)
     np.testing.assert_allclose(g, fd, rtol=RTOL_FD)
 

@@ -2,6 +2,7 @@
 
 from jaxflex.controllers.base import Controller, OpenLoopParams, combine, open_loop
 from jaxflex.controllers.dfs import DFSParams, dfs
+from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy, fuzzy_params
 from jaxflex.controllers.pd import PDParams, pd
 
-__all__ = ["Controller", "OpenLoopParams", "combine", "open_loop", "DFSParams", "dfs", "PDParams", "pd"]
+__all__ = ["Controller", "OpenLoopParams", "combine", "open_loop", "DFSParams", "dfs", "FuzzyParams", "fuzzy", "fuzzy_params", "PDParams", "pd"]

@@ -1,0 +1,124 @@
+"""Figures: NumPy arrays in, matplotlib figures out. The only module that imports matplotlib.
+
+Signals are time-first ``[T]``. A run flagged as diverged is not drawn as NaN: its axes say
+"diverged" and the finite part (if any) is drawn up to the first non-finite sample.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Mapping, Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxflex import fileio  # noqa: E402
+
+_STYLES = {"open_loop": dict(color="0.45", ls="--", lw=1.0), "dfs": dict(color="C0", lw=1.2), "fuzzy": dict(color="C3", lw=1.2)}
+LABELS = {"open_loop": "Open loop", "dfs": "DFS", "fuzzy": "PD-type fuzzy", "dfs+fuzzy": "DFS + fuzzy"}
+
+
+def _finite_prefix(values: np.ndarray) -> int:
+    bad = ~np.isfinite(values)
+    return int(np.argmax(bad)) if bad.any() else values.shape[0]
+
+
+def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signals: Sequence[tuple[str, str]], diverged: Mapping[str, bool], title: str) -> plt.Figure:
+    """Time responses, one subplot per signal.
+
+    Args:
+      t: [T] time (s).
+      runs: run name -> signal name -> [T] values.
+      signals: (signal name, y-axis label) pairs, one subplot each.
+      diverged: run name -> whether the run diverged.
+      title: figure title.
+    """
+    fig, axes = plt.subplots(len(signals), 1, figsize=(7.5, 2.6 * len(signals)), sharex=True, squeeze=False)
+    for ax, (name, ylabel) in zip(axes[:, 0], signals):
+        for run, sig in runs.items():
+            values = np.asarray(sig[name])
+            n = _finite_prefix(values)
+            label = LABELS.get(run, run) + (" (diverged)" if diverged.get(run, False) else "")
+            ax.plot(t[:n], values[:n], label=label, **_STYLES.get(run, {}))
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper right", fontsize=8)
+    axes[-1, 0].set_xlabel("Time (s)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Sequence[float], ylabel: str, title: str, fmax: float = 150.0) -> plt.Figure:
+    """Power spectral densities on a log scale with the model's modal frequencies marked."""
+    fig, ax = plt.subplots(figsize=(7.5, 3.6))
+    keep = freqs <= fmax
+    for run, psd in runs.items():
+        psd = np.asarray(psd)
+        if np.all(np.isfinite(psd)):
+            ax.semilogy(freqs[keep], np.maximum(psd[keep], 1e-300), label=LABELS.get(run, run), **_STYLES.get(run, {}))
+    for f in mode_freqs_hz:
+        if f <= fmax:
+            ax.axvline(f, color="k", lw=0.6, alpha=0.4)
+    ax.set_xlabel("Frequency (Hz)")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def reduction_bars(reductions: Mapping[str, Mapping[str, Sequence[float]]], paper: Mapping[str, Sequence[float]] | None = None) -> plt.Figure:
+    """Vibration reduction (dB) per mode, grouped by controller, one bar per PSD estimator.
+
+    Args:
+      reductions: estimator label -> controller -> [n_modes] dB.
+      paper: controller -> the paper's dB per mode, drawn as hatched bars.
+    """
+    estimators = list(reductions)
+    controllers = list(next(iter(reductions.values())))
+    n_modes = len(next(iter(next(iter(reductions.values())).values())))
+    groups = [(c, m) for c in controllers for m in range(n_modes)]
+    n_bars = len(estimators) + (1 if paper else 0)
+    width = 0.8 / n_bars
+    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    x = np.arange(len(groups))
+    for i, est in enumerate(estimators):
+        vals = [reductions[est][c][m] for c, m in groups]
+        ax.bar(x + (i - (n_bars - 1) / 2) * width, np.nan_to_num(vals, nan=0.0), width, label=f"jaxflex, {est}")
+    if paper:
+        vals = [paper[c][m] if c in paper and m < len(paper[c]) else 0.0 for c, m in groups]
+        ax.bar(x + (n_bars - 1) / 2 * width, vals, width, label="paper", color="none", edgecolor="k", hatch="//")
+    ax.set_xticks(x, [f"{LABELS.get(c, c)}\nmode {m + 1}" for c, m in groups])
+    ax.set_ylabel("Reduction (dB)")
+    ax.set_title("Level of vibration reduction at the natural frequencies")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def surface(e: np.ndarray, e_dot: np.ndarray, values: np.ndarray, title: str = "Fuzzy control surface") -> plt.Figure:
+    """3-D control surface over the normalised (angle, velocity) square; values [n_e, n_edot]."""
+    fig = plt.figure(figsize=(6.5, 5.0))
+    ax = fig.add_subplot(projection="3d")
+    ee, dd = np.meshgrid(e, e_dot, indexing="ij")
+    ax.plot_surface(ee, dd, values, cmap="viridis", linewidth=0, antialiased=True)
+    ax.set_xlabel("Hub angle (normalised)")
+    ax.set_ylabel("Hub velocity (normalised)")
+    ax.set_zlabel("Torque (normalised)")
+    ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def save(fig: plt.Figure, path: str | os.PathLike) -> None:
+    """Write a PNG atomically and close the figure."""
+    try:
+        fileio.atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
+    finally:
+        plt.close(fig)

@@ -1,0 +1,175 @@
+"""Tests of jaxflex.analysis.metrics against analytic signals and NumPy references."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxflex.analysis import (
+    SignalMetrics,
+    control_effort,
+    diverged,
+    iae,
+    ise,
+    peaks,
+    samples_at,
+    settling_time,
+    signal_metrics,
+)
+
+DT = 1e-3  # s
+# Sums of ~1e3 f64 terms, computed in a different order than NumPy.
+RTOL_SUM = 1e-12
+# The final value s_f is the mean of the last 10 % of a record that has decayed by e^-18 or more,
+# so it differs from the true offset by < 2e-8 of the amplitude; this moves the band crossing by
+# far less than a sample unless it falls within ~1e-6 s of a sample instant (not the case below).
+TOL_CROSSING = 1e-9  # s
+
+
+def _settling_reference(s, dt, band=0.02, final_fraction=0.1):
+    """Plain-Python reading of the documented definition, scanning back from the end."""
+    s = np.asarray(s, np.float64)
+    n_final = max(1, int(round(final_fraction * len(s))))
+    s_f = np.mean(s[-n_final:])
+    dev = np.abs(s - s_f)
+    thr = band * dev.max()
+    if dev[-1] > thr:
+        return math.inf
+    k = len(s) - 1
+    while k >= 0 and dev[k] <= thr:
+        k -= 1
+    return (k + 1) * dt
+
+
+@pytest.mark.parametrize("offset,amp", [(0.0, 1.0), (0.35, -0.02), (-5.0, 2.0)])
+def test_settling_time_exponential_about_offset(offset, amp):
+    # s = c + A exp(-t / T0): |s - c| <= band |A| from t = T0 ln(1/band) on, so the settling time is
+    # the first sample at or after that instant.
+    t0 = 0.05
+    t = np.arange(2000) * DT  # 2 s = 40 T0
+    s = offset + amp * np.exp(-t / t0)
+    for band in (0.02, 0.05):
+        t_cross = t0 * math.log(1.0 / band)
+        expected = math.ceil(t_cross / DT - 1e-9) * DT
+        got = float(settling_time(s, DT, band=band))
+        assert abs(got - expected) < TOL_CROSSING, (got, expected)
+        assert t_cross - TOL_CROSSING <= got < t_cross + DT
+        assert got == pytest.approx(_settling_reference(s, DT, band=band), abs=1e-15)
+
+
+def test_settling_time_damped_cosine_about_offset():
+    # s = c + A e^{-a t} cos(w t): the envelope reaches band*A at T_env = ln(1/band)/a; the last
+    # excursion outside the band is within half a period before T_env.
+    a, w, c, amp = 6.0, 2 * np.pi * 16.0, 0.01, 0.03
+    t = np.arange(3000) * DT
+    s = c + amp * np.exp(-a * t) * np.cos(w * t)
+    got = float(settling_time(s, DT))
+    t_env = math.log(1 / 0.02) / a
+    assert t_env - np.pi / w <= got <= t_env + DT
+    assert got == pytest.approx(_settling_reference(s, DT), abs=1e-15)
+    # Measuring the band from 0 instead of the final value would settle far earlier: guard it.
+    got_shifted = float(settling_time(s + 1.0, DT))
+    assert got_shifted == pytest.approx(got, abs=1e-15)
+
+
+def test_settling_time_never_settles_and_always_inside():
+    t = np.arange(1000) * DT
+    growing = np.exp(t)  # last sample is the peak deviation
+    assert math.isinf(float(settling_time(growing, DT)))
+    tone = np.sin(2 * np.pi * 5.0 * t + 1.0)  # undamped; last sample far outside 2 %
+    assert math.isinf(float(settling_time(tone, DT)))
+    assert float(settling_time(np.full(1000, 0.7), DT)) == 0.0
+    assert float(settling_time(tone, DT, band=1.0)) == 0.0  # the band covers the peak deviation
+    impulse = np.zeros(1000)
+    impulse[0] = 1.0
+    assert float(settling_time(impulse, DT)) == DT  # only sample 0 is outside
+
+
+def test_settling_time_columns_and_validation():
+    t = np.arange(1500) * DT
+    s = np.stack([0.2 + np.exp(-t / 0.03), np.sin(40 * t), np.full_like(t, 3.0)], axis=1)  # [T, 3]
+    got = np.asarray(settling_time(s, DT))
+    assert got.shape == (3,)
+    for j in range(3):
+        assert got[j] == pytest.approx(_settling_reference(s[:, j], DT), abs=1e-15) or (
+            math.isinf(got[j]) and math.isinf(_settling_reference(s[:, j], DT))
+        )
+    with pytest.raises(ValueError, match="final_fraction"):
+        settling_time(s, DT, final_fraction=0.0)
+    with pytest.raises(ValueError, match="dt must be finite and > 0"):
+        settling_time(s, -DT)
+    with pytest.raises(ValueError, match="band"):
+        settling_time(s, DT, band=0.0)
+
+
+def test_peaks_ise_iae_effort_against_numpy():
+    rng = np.random.default_rng(0)
+    s = rng.standard_normal((800, 2))
+    lo, hi = peaks(s)
+    np.testing.assert_array_equal(lo, s.min(axis=0))
+    np.testing.assert_array_equal(hi, s.max(axis=0))
+    np.testing.assert_allclose(ise(s, DT), np.sum(s**2, axis=0) * DT, rtol=RTOL_SUM)
+    np.testing.assert_allclose(iae(s, DT), np.sum(np.abs(s), axis=0) * DT, rtol=RTOL_SUM)
+    np.testing.assert_allclose(control_effort(s[:, 0], DT), np.sum(s[:, 0] ** 2) * DT, rtol=RTOL_SUM)
+    # Analytic: ISE of a constant c over T samples is c^2 T dt.
+    np.testing.assert_allclose(ise(np.full(500, 0.3), 0.01), 0.09 * 5.0, rtol=RTOL_SUM)
+    m = signal_metrics(s[:, 1], DT)
+    assert isinstance(m, SignalMetrics)
+    np.testing.assert_allclose(m.iae, np.sum(np.abs(s[:, 1])) * DT, rtol=RTOL_SUM)
+    assert float(m.min) == s[:, 1].min() and float(m.max) == s[:, 1].max()
+
+
+def test_diverged():
+    x = np.zeros((50, 3))
+    assert not bool(diverged(x))
+    for bad in (np.nan, np.inf, -np.inf, 2e6, -2e6):
+        y = x.copy()
+        y[17, 1] = bad
+        assert bool(diverged(y)), bad
+    y = x.copy()
+    y[3, 0] = 5.0
+    assert bool(diverged(y, threshold=4.0)) and not bool(diverged(y, threshold=5.0))
+    assert bool(jax.jit(diverged)(jnp.array([0.0, jnp.nan])))
+
+
+def test_samples_at():
+    s = np.arange(101.0) * 2.0  # s[k] = 2k at t = k dt
+    dt = 0.01
+    np.testing.assert_array_equal(samples_at(s, dt, (0.0, 0.25, 0.3, 0.504, 0.506, 1.0)), [0, 50, 60, 100, 102, 200])
+    s2 = np.stack([s, -s], axis=1)
+    np.testing.assert_array_equal(samples_at(s2, dt, (0.1,)), [[20.0, -20.0]])
+    with pytest.raises(ValueError, match="times_s must lie in the record"):
+        samples_at(s, dt, (1.01,))
+    with pytest.raises(ValueError, match="times_s must lie in the record"):
+        samples_at(s, dt, (-0.01,))
+    # Traced dt: same values, NaN (not an error) outside the record.
+    got = jax.jit(lambda s, dt: samples_at(s, dt, (0.25, 2.0)))(s, dt)
+    np.testing.assert_array_equal(got[:1], [50.0])
+    assert np.isnan(got[1])
+
+
+def test_float32_preserved():
+    t = np.arange(1000, dtype=np.float32) * np.float32(DT)
+    s = jnp.asarray(0.1 + np.exp(-t / 0.05), jnp.float32)
+    m = signal_metrics(s, jnp.float64(DT))  # a float64 dt must not promote the results
+    for leaf in m:
+        assert leaf.dtype == jnp.float32
+    assert samples_at(s, DT, (0.1,)).dtype == jnp.float32
+    assert control_effort(s, DT).dtype == jnp.float32
+    # Same settling time as f64 up to one sample (f32 roundoff near the crossing).
+    assert abs(float(m.settling_time_s) - 0.05 * math.log(50)) < DT + 1e-6
+
+
+def test_vmap_and_jit_equal_loop():
+    t = np.arange(1200) * DT
+    taus = np.array([0.02, 0.05, 0.1, 0.15])
+    batch = jnp.asarray(0.3 + np.exp(-t[None, :] / taus[:, None]) * np.cos(30 * t[None, :]))  # [B, T]
+    fn = lambda s: signal_metrics(s, DT)
+    batched = jax.jit(jax.vmap(fn))(batch)
+    for b in range(batch.shape[0]):
+        single = fn(batch[b])
+        for got, want in zip(batched, single):
+            np.testing.assert_allclose(got[b], want, rtol=RTOL_SUM)
+    np.testing.assert_array_equal(jax.vmap(diverged)(batch.at[2, 5].set(jnp.nan)), [False, False, True, False])

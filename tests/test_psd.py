@@ -1,0 +1,230 @@
+"""Tests of jaxflex.analysis.psd: Welch PSD against scipy.signal.welch, and the dB reduction."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.signal
+
+from jaxflex.analysis import PSDSettings, band_peak, get_window, vibration_reduction_db, welch
+
+# Same algorithm as scipy in float64 (detrend, window, FFT, scaling); observed worst relative
+# error is ~1e-13, so 1e-6 leaves room for other FFT backends while catching any formula slip
+# (a wrong window coefficient, scale or one-sided factor is an O(1e-2..1) error).
+RTOL_SCIPY = 1e-6
+# Bins where the true PSD is ~0 (e.g. DC after detrending) hold pure roundoff on both sides, so
+# relative error is meaningless there: allow an absolute floor of 1e-12 of the spectrum's max
+# (f64 roundoff of sums of ~1e3 terms is ~1e-13 relative to the largest term).
+ATOL_FLOOR_REL = 1e-12
+# dB values from synthetic PSDs are exact up to f64 roundoff in a ratio and log10.
+ATOL_DB = 1e-9
+# jit/vmap vs eager: same f64 operations, possibly fused differently.
+RTOL_TRANSFORM = 1e-12
+
+FS = 200.0  # Hz
+
+
+def _signal(seed, shape):
+    """Noise plus a slow ramp plus an offset, so 'constant' and 'linear' detrending differ.
+
+    The noise comes from NumPy's seeded generator: these are fixed test inputs, and each
+    jax.random.normal shape would cost an XLA compilation (~0.4 s).
+    """
+    t = np.arange(shape[0]).reshape((shape[0],) + (1,) * (len(shape) - 1)) / FS  # time first
+    return np.random.default_rng(seed).standard_normal(shape) + 0.7 + 3.0 * t
+
+
+def _assert_matches_scipy(x, **kw):
+    f, p = welch(x, FS, **kw)
+    f_ref, p_ref = scipy.signal.welch(
+        x, FS, scaling="density", return_onesided=True, average="mean", axis=0, **kw
+    )
+    assert f.shape == f_ref.shape and p.shape == p_ref.shape
+    np.testing.assert_allclose(f, f_ref, rtol=RTOL_SCIPY, atol=0)
+    np.testing.assert_allclose(p, p_ref, rtol=RTOL_SCIPY, atol=ATOL_FLOOR_REL * np.max(p_ref))
+    return f, p
+
+
+@pytest.mark.parametrize("window", ["hann", "hamming", "blackman", "boxcar"])
+def test_window_matches_scipy(window):
+    for n in (1, 8, 63):
+        np.testing.assert_allclose(
+            get_window(window, n, jnp.float64), scipy.signal.get_window(window, n), rtol=1e-12, atol=1e-15
+        )
+
+
+@pytest.mark.parametrize(
+    "nperseg,noverlap,window,detrend",
+    [
+        # Every window with every detrend option, at least once; odd and even nperseg.
+        (63, None, "hann", None),  # odd (no Nyquist bin), default half overlap, leftover dropped
+        (63, None, "hamming", "constant"),
+        (63, None, "blackman", "linear"),
+        (63, None, "boxcar", None),
+        (256, None, "hann", "constant"),  # scipy's defaults
+        (64, 0, "hamming", "linear"),  # no overlap
+        (65, 64, "blackman", False),  # maximal overlap, odd
+        (101, 17, "boxcar", "linear"),  # odd, small overlap, leftover samples dropped
+        (8, 4, "hann", "linear"),  # short segments
+        (128, 32, "blackman", "constant"),
+        (50, 10, "boxcar", "constant"),
+        (1000, 0, "hann", "constant"),  # one segment spanning the whole record
+    ],
+)
+def test_welch_matches_scipy(nperseg, noverlap, window, detrend):
+    x = _signal(0, (1000,))
+    _assert_matches_scipy(x, window=window, nperseg=nperseg, noverlap=noverlap, detrend=detrend)
+
+
+@pytest.mark.parametrize("detrend", ["constant", "linear", None])
+def test_welch_columns_match_scipy(detrend):
+    x = _signal(1, (777, 3))
+    _, p = _assert_matches_scipy(x, window="hann", nperseg=128, noverlap=96, detrend=detrend)
+    assert p.shape == (65, 3)
+    # Column j of a [T, n] input is the PSD of that column alone.
+    if detrend == "linear":  # one configuration suffices (each adds a compilation)
+        for j in range(3):
+            _, pj = welch(x[:, j], FS, window="hann", nperseg=128, noverlap=96, detrend=detrend)
+            np.testing.assert_allclose(p[:, j], pj, rtol=RTOL_TRANSFORM)
+
+
+def test_welch_whole_record_and_settings():
+    x = _signal(2, (300,))
+    s = PSDSettings(window="hamming", nperseg=75, noverlap=None, detrend="linear")
+    f, p = welch(x, FS, settings=s)
+    f2, p2 = welch(x, FS, window="hamming", nperseg=75, detrend="linear")
+    np.testing.assert_array_equal(p, p2)
+    d = s.to_dict()
+    assert d["noverlap"] == 37 and d["window"] == "hamming" and d["nperseg"] == 75
+    assert d["detrend"] == "linear" and d["scaling"] == "density"
+    assert PSDSettings(detrend=False).to_dict()["detrend"] is None
+    with pytest.raises(ValueError, match="not both"):
+        welch(x, FS, nperseg=64, settings=s)
+
+
+def test_sinusoid_plus_noise_matches_scipy_and_peaks_at_tone():
+    f_tone = 37.5  # Hz; bin 48 of nperseg = 256 at FS = 200
+    t = np.arange(4000) / FS
+    noise = 0.3 * np.random.default_rng(3).standard_normal(t.shape)
+    x = 0.02 * np.sin(2 * np.pi * f_tone * t + 0.3) + 0.001 * noise
+    f, p = _assert_matches_scipy(x, window="hann", nperseg=256, noverlap=128, detrend="constant")
+    assert int(jnp.argmax(p)) == 48 and float(f[48]) == f_tone
+
+
+@pytest.mark.parametrize("window", ["hann", "boxcar"])
+def test_pure_sinusoid_peak_bin_and_power(window):
+    # On a bin centre with boxcar, the density PSD peak is A^2/2 * nperseg / fs (all power in one bin).
+    nperseg, k = 128, 19
+    f_tone = k * FS / nperseg
+    t = np.arange(1024) / FS
+    a = 1.5
+    f, p = welch(a * np.cos(2 * np.pi * f_tone * t), FS, window=window, nperseg=nperseg)
+    assert int(jnp.argmax(p)) == k
+    if window == "boxcar":
+        np.testing.assert_allclose(p[k], a**2 / 2 * nperseg / FS, rtol=1e-10)
+    # Parseval for the density scaling: integral of the PSD equals the mean power A^2/2 (hann:
+    # the tone spreads over 3 bins, the sum still holds).
+    np.testing.assert_allclose(jnp.sum(p) * (FS / nperseg), a**2 / 2, rtol=1e-10)
+
+
+def test_vibration_reduction_db_exact_values():
+    freqs = np.arange(0.0, 101.0)  # 1 Hz bins
+    psd_open = np.full((101,), 1e-6)
+    # Mode 1 near 16 Hz: open-loop peak at 17 Hz (inside +-15 %), a bigger bump at 25 Hz outside.
+    psd_open[[16, 17, 25]] = [2.0, 4.0, 100.0]
+    # Mode 2 near 55 Hz: peak at 50 Hz (inside 55 +- 8.25 Hz).
+    psd_open[50] = 3.0
+    psd_closed = psd_open / 10.0
+    psd_closed[17] = 4.0 / 10**3  # 30 dB at the open-loop peak bin
+    psd_closed[16] = 2.0 / 10**9  # closed loop much lower at 16 Hz: must NOT be used
+    psd_closed[50] = 3.0 * 10**0.5  # closed loop louder: -5 dB
+    db = vibration_reduction_db(freqs, psd_open, psd_closed, jnp.array([16.0, 55.0]))
+    np.testing.assert_allclose(db, [30.0, -5.0], rtol=0, atol=ATOL_DB)
+
+    f_peak, idx = band_peak(freqs, psd_open, 16.0)
+    assert float(f_peak) == 17.0 and int(idx) == 17
+    # A narrower band excludes 17 Hz (|17 - 16| > 0.05 * 16), so 16 Hz is taken: 90 dB.
+    np.testing.assert_allclose(
+        vibration_reduction_db(freqs, psd_open, psd_closed, jnp.array([16.0]), rel_band=0.05), [90.0], atol=ATOL_DB
+    )
+    # A band with no bins gives NaN, not a silent read of bin 0.
+    f_peak, _ = band_peak(jnp.array([0.0, 10.0, 20.0]), jnp.ones(3), 14.0, rel_band=0.1)
+    assert np.isnan(f_peak)
+    with pytest.raises(ValueError, match="mode_freqs_hz"):
+        vibration_reduction_db(freqs, psd_open, psd_closed, jnp.array([-1.0]))
+
+
+def test_vibration_reduction_db_on_welch_outputs():
+    # Open loop: two tones; closed loop: same tones scaled by 1e-2 and 1e-1 in amplitude
+    # -> 40 dB and 20 dB in power, whatever the window (the PSD is linear in power).
+    t = np.arange(8192) / FS
+    tones = [(16.0, 1.0, 1e-2), (55.0, 0.5, 1e-1)]
+    x_open = sum(a * np.sin(2 * np.pi * f * t) for f, a, _ in tones)
+    x_closed = sum(g * a * np.sin(2 * np.pi * f * t) for f, a, g in tones)
+    f, p_open = welch(x_open, FS, nperseg=512)
+    _, p_closed = welch(x_closed, FS, nperseg=512)
+    db = vibration_reduction_db(f, p_open, p_closed, jnp.array([16.0, 55.0]))
+    np.testing.assert_allclose(db, [40.0, 20.0], atol=1e-3)  # leakage of the other tone only
+
+
+def test_jit_equals_eager():
+    x = _signal(4, (600, 2))
+    kw = dict(window="hamming", nperseg=100, noverlap=30, detrend="linear")
+    modes = jnp.array([20.0, 55.0])
+
+    def analyse(x_open, x_closed):
+        f, p_open = welch(x_open, FS, **kw)
+        _, p_closed = welch(x_closed, FS, **kw)
+        return f, p_open, vibration_reduction_db(f, p_open, p_closed, modes)
+
+    out_jit = jax.jit(analyse)(x[:, 0], x[:, 1])
+    with jax.disable_jit():
+        out_eager = analyse(x[:, 0], x[:, 1])
+    for got, want in zip(out_jit, out_eager):
+        np.testing.assert_allclose(got, want, rtol=RTOL_TRANSFORM)
+    # [T, n] input under jit as well.
+    _, p2 = jax.jit(lambda x: welch(x, FS, **kw))(x)
+    np.testing.assert_allclose(p2[:, 0], out_eager[1], rtol=RTOL_TRANSFORM)
+
+
+def test_vmap_equals_loop_and_grad_finite():
+    xs = _signal(5, (500, 4)).T  # [B, T] batch of signals
+    xs = jnp.asarray(xs)
+    fn = lambda x: welch(x, FS, nperseg=64, detrend="linear")[1]
+    batched = jax.vmap(fn)(xs)
+    looped = jnp.stack([fn(x) for x in xs])
+    np.testing.assert_allclose(batched, looped, rtol=RTOL_TRANSFORM)
+    # Differentiable in x and fs.
+    g = jax.grad(lambda x, fs: jnp.sum(welch(x, fs, nperseg=64)[1]), argnums=(0, 1))(xs[0], FS)
+    assert np.all(np.isfinite(g[0])) and np.any(g[0] != 0) and np.isfinite(g[1]) and g[1] < 0
+
+
+def test_float32_preserved():
+    x = jnp.asarray(_signal(6, (512,)), jnp.float32)
+    f, p = welch(x, FS, nperseg=128)
+    assert f.dtype == jnp.float32 and p.dtype == jnp.float32
+    _, p_ref = scipy.signal.welch(np.asarray(x, np.float64), FS, nperseg=128)
+    np.testing.assert_allclose(p, p_ref, rtol=1e-4, atol=1e-6 * p_ref.max())  # f32 roundoff
+
+
+def test_validation_errors():
+    x = jnp.ones(100)
+    with pytest.raises(ValueError, match=r"nperseg must satisfy 1 <= nperseg <= T = 100"):
+        welch(x, FS, nperseg=101)
+    with pytest.raises(ValueError, match=r"nperseg"):
+        welch(x, FS, nperseg=0)
+    with pytest.raises(ValueError, match=r"nperseg"):
+        welch(x, FS, nperseg=32.0)
+    with pytest.raises(ValueError, match=r"noverlap must satisfy 0 <= noverlap < nperseg = 32"):
+        welch(x, FS, nperseg=32, noverlap=32)
+    with pytest.raises(ValueError, match=r"noverlap"):
+        welch(x, FS, nperseg=32, noverlap=-1)
+    with pytest.raises(ValueError, match=r"window must be one of .*hann.*hamming.*blackman.*boxcar"):
+        welch(x, FS, nperseg=32, window="kaiser")
+    with pytest.raises(ValueError, match=r"detrend"):
+        welch(x, FS, nperseg=32, detrend="quadratic")
+    for bad_fs in (0.0, -1.0, np.inf, np.nan):
+        with pytest.raises(ValueError, match=r"fs must be finite and > 0"):
+            welch(x, bad_fs, nperseg=32)
+    with pytest.raises(ValueError, match=r"\[T\] or \[T, n\]"):
+        welch(jnp.ones((10, 2, 2)), FS, nperseg=4)

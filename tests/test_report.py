@@ -1,0 +1,105 @@
+"""`jaxflex reproduce` end to end, results.json schema, atomic writes, and the README staying true."""
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxflex import beam, cli, fileio
+from jaxflex.report import FIGURES
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def reproduced(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reproduce")
+    assert cli.main(["reproduce", "--out", str(out)]) == 0
+    return out, json.loads((out / "results.json").read_text())
+
+
+def test_results_json_has_the_documented_keys(reproduced):
+    out, res = reproduced
+    assert res["model"]["n_modes"] == 2
+    freqs = res["model"]["natural_frequencies_hz"]
+    assert freqs == sorted(freqs) and len(freqs) == 2
+    np.testing.assert_allclose(freqs, np.asarray(beam.natural_frequencies_hz(beam.BeamParams(), 2)), rtol=1e-6)
+    for run in ("open_loop", "dfs", "fuzzy"):
+        for sig in ("q1", "tip_deflection_m", "hub_angle_rad"):
+            assert set(res["runs"][run][sig]) >= {"min", "max", "settling_time_s"}
+        for sig in ("q1", "hub_angle_rad"):
+            assert len(res["runs"][run]["samples"][sig]) == 3
+    for run in ("dfs", "fuzzy"):
+        assert len(res["vibration_reduction_db"][run]) == 2
+        assert all(v > 0 for v in res["vibration_reduction_db"][run])  # both controllers damp the modes
+        assert res["runs"][run]["diverged"] is False
+    assert set(res["psd"]) >= {"window", "nperseg", "noverlap", "fs_hz"}
+    assert len(res["vibration_reduction_db_by_estimator"]) >= 2
+    # the open loop starts where the scenario says and the controllers settle well before 3 s
+    assert res["runs"]["open_loop"]["q1"]["max"] == pytest.approx(1e-3, rel=1e-9)
+    assert res["runs"]["open_loop"]["q1"]["settling_time_s"] is None  # 1 % damping: not settled in 3 s
+    assert 0 < res["runs"]["dfs"]["q1"]["settling_time_s"] < 1.0
+
+
+def test_figures_and_report_are_written(reproduced):
+    out, res = reproduced
+    for name in FIGURES:
+        data = (out / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    report = (out / "report.md").read_text()
+    assert "| 1 | 16 |" in report and "differs" in report
+    assert f"{res['model']['natural_frequencies_hz'][0]:.3f}" in report
+    assert not [p for p in os.listdir(out) if p.startswith(".tmp-")]  # no temporary files left
+
+
+def test_samples_are_the_trajectory_values(reproduced):
+    """results.json samples equal an independent rollout read at t = 0.1, 0.5, 1.0 s."""
+    import jaxflex as jf
+    from jaxflex.controllers import DFSParams, dfs
+
+    _, res = reproduced
+    plant = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")
+    traj = jf.rollout(plant, dfs(), DFSParams(55.0, 0.005), jf.paper_scenario(plant))
+    np.testing.assert_allclose(res["runs"]["dfs"]["samples"]["q1"], np.asarray(traj.x[[100, 500, 1000], 1]), rtol=1e-12)
+
+
+def test_bad_modes_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["reproduce", "--modes", "0"])
+    assert "expected an integer >= 1" in capsys.readouterr().err
+
+
+def test_failed_write_keeps_the_previous_file(tmp_path):
+    path = tmp_path / "results.json"
+    fileio.write_json(path, {"good": 1})
+
+    def broken(tmp):
+        Path(tmp).write_text('{"half": ')
+        raise RuntimeError("interrupted")
+
+    with pytest.raises(RuntimeError):
+        fileio.atomic_write(path, broken)
+    assert json.loads(path.read_text()) == {"good": 1}
+    assert os.listdir(tmp_path) == ["results.json"]
+    fileio.write_json(path, {"x": float("nan"), "y": np.float32(2.5), "z": np.arange(2)})
+    assert json.loads(path.read_text()) == {"x": None, "y": 2.5, "z": [0, 1]}
+
+
+def test_readme_quick_start_matches_ci():
+    readme = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```bash\n(.*?)\n```", readme, re.S)
+    assert len(blocks) == 2 and "jaxflex reproduce" in blocks[0] and "pytest" in blocks[1]
+    assert blocks[1] in (ROOT / ".ci" / "run").read_text()
+
+
+def test_readme_api_tour_runs(tmp_path):
+    readme = (ROOT / "README.md").read_text()
+    code = re.findall(r"```python\n(.*?)\n```", readme, re.S)[0]
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "(8, 3000, 3)" in result.stdout
