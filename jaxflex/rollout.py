@@ -4,7 +4,9 @@ At sample k the controller sees ``y[k] = C x[k] + noise[k]``, returns ``u[k]``, 
 plant advances ``x[k+1] = Ad x[k] + Bd u[k] + Ed force[k]`` (inputs held over the sample).
 
 ``rollout`` is pure, unjitted and unbatched: callers compose ``jax.jit``, ``jax.vmap``
-(over scenarios, plants or parameters) and ``jax.grad`` around it.
+(over scenarios, plants or parameters) and ``jax.grad`` around it. With
+``output="metrics"`` the same loop keeps only running metrics in its carry
+(:class:`RunMetrics`), so memory does not grow with the horizon.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxflex.analysis.metrics import DIVERGENCE_THRESHOLD
 from jaxflex.controllers.base import Controller, is_concrete
 from jaxflex.plant import DiscretePlant
 from jaxflex.scenarios import Scenario
@@ -37,6 +40,40 @@ class Trajectory(NamedTuple):
     z: jax.Array
 
 
+class RunMetrics(NamedTuple):
+    """Running metrics of one rollout over samples k = 0..T-1 (each shape ()).
+
+    They equal the same quantities computed from the Trajectory (tested).
+
+    Attributes:
+      peak_tip_m: max |tip deflection| (m).
+      tip_ise: sum of tip deflection^2 dt (m^2 s).
+      tip_iae: sum of |tip deflection| dt (m s).
+      hub_ise: sum of hub angle^2 dt (rad^2 s).
+      control_effort: sum of u^2 dt (N^2 m^2 s).
+      final_hub_angle_rad: hub angle at the end of the horizon, t = T dt (rad).
+      settling_time_s: time after which |tip deflection| stays within ``settling_band`` of its
+        peak, measured from 0 (the equilibrium of the elastic deflection); +inf if the last
+        sample is outside the band. Computed exactly in one pass: when the running peak grows
+        at sample k, sample k itself is outside the band, so earlier exceedances never matter.
+      peak_abs_state: max |x| over all states and samples (NaN if any sample was non-finite).
+      diverged: peak_abs_state non-finite or above ``DIVERGENCE_THRESHOLD``.
+    """
+
+    peak_tip_m: jax.Array
+    tip_ise: jax.Array
+    tip_iae: jax.Array
+    hub_ise: jax.Array
+    control_effort: jax.Array
+    final_hub_angle_rad: jax.Array
+    settling_time_s: jax.Array
+    peak_abs_state: jax.Array
+    diverged: jax.Array
+
+
+OUTPUTS = ("trajectory", "metrics")
+
+
 def _check_shapes(plant: DiscretePlant, scenario: Scenario) -> None:
     n_x = plant.Ad.shape[-1]
     if plant.Ad.shape != (n_x, n_x):
@@ -50,7 +87,7 @@ def _check_shapes(plant: DiscretePlant, scenario: Scenario) -> None:
         raise ValueError(f"scenario.noise must have shape ({steps}, 2); got {scenario.noise.shape}")
 
 
-def rollout(plant: DiscretePlant, controller: Controller, params: Any, scenario: Scenario) -> Trajectory:
+def rollout(plant: DiscretePlant, controller: Controller, params: Any, scenario: Scenario, *, output: str = "trajectory", settling_band: float = 0.02) -> Trajectory | RunMetrics:
     """Simulate the closed loop over the scenario's horizon.
 
     Args:
@@ -58,25 +95,67 @@ def rollout(plant: DiscretePlant, controller: Controller, params: Any, scenario:
       controller: any :class:`~jaxflex.controllers.base.Controller`.
       params: the controller's parameter pytree (leaves may be traced).
       scenario: one unbatched scenario; the horizon T is ``scenario.force.shape[0]``.
+      output: ``"trajectory"`` (every sample, memory O(T)) or ``"metrics"`` (running
+        metrics only, memory O(1) in T).
+      settling_band: band of the running settling time, as a fraction of the peak.
 
     Returns:
-      Trajectory with fields [T, ...]. A loop that diverges returns non-finite or huge
-      values; :func:`jaxflex.analysis.metrics.diverged` reports it.
+      Trajectory with fields [T, ...], or RunMetrics. A loop that diverges returns
+      non-finite or huge values; ``RunMetrics.diverged`` and
+      :func:`jaxflex.analysis.metrics.diverged` report it.
     """
     _check_shapes(plant, scenario)
+    if output not in OUTPUTS:
+        raise ValueError(f"output must be one of {OUTPUTS}; got {output!r}")
     if is_concrete(params):
         controller.check(params)
 
-    def body(carry, inputs):
-        x, state = carry
-        force, noise = inputs
+    def loop_step(x, state, force, noise):
         y = plant.C @ x + noise
         state, u = controller.step(params, state, y)
-        x_next = plant.Ad @ x + plant.Bd @ u + plant.Ed @ force
-        return (x_next, state), (x, u, y, plant.Cz @ x)
+        return plant.Ad @ x + plant.Bd @ u + plant.Ed @ force, state, u, y
 
     y0 = plant.C @ scenario.x0 + scenario.noise[0]
-    carry0 = (scenario.x0, controller.init(params, y0))
-    _, (x, u, y, z) = jax.lax.scan(body, carry0, (scenario.force, scenario.noise))
-    t = jnp.arange(scenario.force.shape[0], dtype=x.dtype) * plant.dt
-    return Trajectory(t, x, u, y, z)
+    state0 = controller.init(params, y0)
+    steps = scenario.force.shape[0]
+    if output == "trajectory":
+
+        def body(carry, inputs):
+            x, state = carry
+            x_next, state, u, y = loop_step(x, state, *inputs)
+            return (x_next, state), (x, u, y, plant.Cz @ x)
+
+        _, (x, u, y, z) = jax.lax.scan(body, (scenario.x0, state0), (scenario.force, scenario.noise))
+        t = jnp.arange(steps, dtype=x.dtype) * plant.dt
+        return Trajectory(t, x, u, y, z)
+
+    dtype = scenario.x0.dtype
+    zero = jnp.zeros((), dtype)
+    dt = plant.dt.astype(dtype)
+
+    def metrics_body(carry, inputs):
+        x, state, k, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x = carry
+        x_next, state, u, _ = loop_step(x, state, *inputs)
+        hub, tip = plant.Cz[0] @ x, plant.Cz[1] @ x
+        peak = jnp.maximum(peak, jnp.abs(tip))
+        last_out = jnp.where(jnp.abs(tip) > settling_band * peak, k, last_out)
+        carry = (
+            x_next,
+            state,
+            k + 1,
+            peak,
+            last_out,
+            ise_t + tip**2 * dt,
+            iae_t + jnp.abs(tip) * dt,
+            ise_h + hub**2 * dt,
+            effort + jnp.sum(u**2) * dt,
+            jnp.maximum(peak_x, jnp.max(jnp.abs(x))),
+        )
+        return carry, None
+
+    carry0 = (scenario.x0, state0, jnp.zeros((), jnp.int32), zero, jnp.full((), -1, jnp.int32), zero, zero, zero, zero, zero)
+    final, _ = jax.lax.scan(metrics_body, carry0, (scenario.force, scenario.noise))
+    x_end, _, _, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x = final
+    settling = jnp.where(last_out >= steps - 1, jnp.inf, (last_out + 1).astype(dtype) * dt)
+    diverged = ~jnp.isfinite(peak_x) | (peak_x > DIVERGENCE_THRESHOLD)
+    return RunMetrics(peak, ise_t, iae_t, ise_h, effort, x_end[0], settling, peak_x, diverged)

@@ -178,3 +178,39 @@ def test_float32_rollout_preserves_dtype():
     assert sc.x0.dtype == jnp.float32
     traj = jf.rollout(d, dfs(), DFSParams(jnp.float32(55.0), jnp.float32(0.005)), sc)
     assert traj.x.dtype == jnp.float32 and traj.u.dtype == jnp.float32
+
+
+@pytest.mark.parametrize("controller, params", [(dfs(), DFSParams(55.0, 0.005)), (fuzzy(), fuzzy_params(1.02, 0.30, 1.0))])
+def test_running_metrics_equal_trajectory_metrics(plant2, controller, params):
+    steps = 1500
+    force = np.zeros((steps, 1))
+    force[100:110] = 0.5  # a 10 ms tip-force pulse at t = 0.1 s
+    sc = Scenario(paper_scenario(plant2).x0, jnp.asarray(force), jnp.zeros((steps, 2)))
+    traj = jf.rollout(plant2, controller, params, sc)
+    m = jf.rollout(plant2, controller, params, sc, output="metrics")
+    tip, hub, dt = np.asarray(traj.z[:, 1]), np.asarray(traj.z[:, 0]), 1e-3
+    np.testing.assert_allclose(m.peak_tip_m, np.abs(tip).max(), rtol=1e-12)
+    np.testing.assert_allclose(m.tip_ise, np.sum(tip**2) * dt, rtol=1e-10)
+    np.testing.assert_allclose(m.tip_iae, np.sum(np.abs(tip)) * dt, rtol=1e-10)
+    np.testing.assert_allclose(m.hub_ise, np.sum(hub**2) * dt, rtol=1e-10)
+    np.testing.assert_allclose(m.control_effort, np.sum(np.asarray(traj.u) ** 2) * dt, rtol=1e-10)
+    x_end = np.asarray(plant2.Ad) @ np.asarray(traj.x[-1]) + np.asarray(plant2.Bd) @ np.asarray(traj.u[-1]) + np.asarray(plant2.Ed) @ np.asarray(sc.force[-1])
+    np.testing.assert_allclose(m.final_hub_angle_rad, x_end[0], rtol=1e-10)
+    outside = np.nonzero(np.abs(tip) > 0.02 * np.abs(tip).max())[0]
+    expected = np.inf if outside[-1] == steps - 1 else (outside[-1] + 1) * dt
+    np.testing.assert_allclose(m.settling_time_s, expected, rtol=1e-12)
+    assert 0 < expected < 1.5
+    np.testing.assert_allclose(m.peak_abs_state, np.abs(np.asarray(traj.x)).max(), rtol=1e-12)
+    assert not bool(m.diverged)
+
+
+def test_running_metrics_report_divergence(plant2):
+    sc = paper_scenario(plant2, horizon_s=2.0)
+    m = jf.rollout(plant2, pd(), PDParams(-50.0, -1.0), sc, output="metrics")  # positive feedback
+    assert bool(m.diverged)
+    assert jf.rollout(plant2, pd(), PDParams(1.0, 0.1), sc, output="metrics").diverged.item() is False
+
+
+def test_unknown_output_is_rejected(plant2):
+    with pytest.raises(ValueError, match="output must be one of"):
+        jf.rollout(plant2, open_loop(), OpenLoopParams(), paper_scenario(plant2, horizon_s=0.01), output="all")
