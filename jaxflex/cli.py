@@ -25,6 +25,20 @@ def _parser() -> argparse.ArgumentParser:
     rep.add_argument("--out", default="results", help="output folder (default: ./results)")
     rep.add_argument("--modes", type=_positive_int, default=2, help="number of assumed modes, >= 1 (default: 2, as the paper)")
     rep.add_argument("--x64", action="store_true", help="simulate in float64 (default float32)")
+    rep.add_argument("--params", default=None, help="tuned.json from `jaxflex tune`: show its gains beside the paper's")
+
+    tun = sub.add_parser("tune", help="tune DFS and/or fuzzy parameters by gradient descent over sampled scenarios")
+    tun.add_argument("--controller", choices=("dfs", "fuzzy", "dfs+fuzzy"), default=None, help="controller to tune (default dfs)")
+    tun.add_argument("--scenarios", type=_positive_int, default=None, help="training scenarios (default 256)")
+    tun.add_argument("--heldout", type=_positive_int, default=None, help="held-out validation scenarios (default 64)")
+    tun.add_argument("--steps", type=_positive_int, default=None, help="optimiser steps (default 200)")
+    tun.add_argument("--seed", type=int, default=None, help="PRNG seed of the scenarios (default 0)")
+    tun.add_argument("--lr", type=float, default=None, help="Adam learning rate on the unconstrained parameters (default 0.05)")
+    tun.add_argument("--config", default=None, help="TOML file: top-level TuneConfig keys and [scenarios], [objective], [initial] tables")
+    tun.add_argument("--out", default="tuned", help="output folder (default ./tuned)")
+    tun.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
+    tun.add_argument("--no-progress", action="store_true", help="no progress bar")
+    tun.add_argument("--x64", action="store_true", help="tune in float64 (default float32)")
     return parser
 
 
@@ -44,7 +58,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
         try:
-            results = reproduce(args.out, n_modes=args.modes, progress=progress)
+            results = reproduce(args.out, n_modes=args.modes, progress=progress, params_file=args.params)
         except ValueError as err:
             print(f"jaxflex reproduce: error: {err}", file=sys.stderr)
             return 2
@@ -54,7 +68,42 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"vibration reduction (dB, {results['psd']['name']}): DFS {db['dfs']}, fuzzy {db['fuzzy']}")
         print(f"wrote {args.out}/results.json, {args.out}/report.md and figures in {args.out}/ ({time.perf_counter() - start:.1f} s)")
         return 0
+    if args.command == "tune":
+        return _tune(args)
     return 2  # pragma: no cover - argparse enforces the choices
+
+
+def _tune(args: argparse.Namespace) -> int:
+    import json
+    import os
+
+    from tuning.run import run_tune
+    from tuning.tuner import TuneConfig, load_config
+
+    try:
+        values = load_config(args.config) if args.config else {}
+        config = TuneConfig.from_mapping(
+            values,
+            controller=args.controller,
+            n_scenarios=args.scenarios,
+            n_heldout=args.heldout,
+            steps=args.steps,
+            seed=args.seed,
+            learning_rate=args.lr,
+        )
+        summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress)
+    except (ValueError, OSError) as err:
+        print(f"jaxflex tune: error: {err}", file=sys.stderr)
+        return 2
+    obj = summary["objective"]
+    print(f"tuned {summary['controller']}: {json.dumps(summary['params'])} (paper: {json.dumps(summary['paper_params'])})")
+    print(f"objective, training   {obj['train']['before']:.4g} -> {obj['train']['after']:.4g}")
+    print(f"objective, held-out   {obj['heldout']['before']:.4g} -> {obj['heldout']['after']:.4g}")
+    if "stability" in summary:
+        st = summary["stability"]
+        print(f"sampled-loop spectral radius {st['spectral_radius']:.6f} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {st['paper_spectral_radius']:.6f})")
+    print(f"wrote {os.path.join(args.out, 'tuned.json')}, history.csv and figures")
+    return 0
 
 
 if __name__ == "__main__":

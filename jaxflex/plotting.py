@@ -122,3 +122,18 @@ def save(fig: plt.Figure, path: str | os.PathLike) -> None:
         fileio.atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
     finally:
         plt.close(fig)
+
+
+def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str) -> plt.Figure:
+    """Training loss per step and held-out objective at each validation (log scale)."""
+    fig, ax = plt.subplots(figsize=(7.0, 3.6))
+    ax.semilogy(steps, loss, label="training loss (objective + penalty)", color="C0")
+    if len(val_steps):
+        ax.semilogy(val_steps, val, "o-", label="held-out objective", color="C1", ms=3)
+    ax.set_xlabel("Step")
+    ax.set_ylabel("Objective (1 = paper gains on training set)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    return fig

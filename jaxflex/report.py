@@ -9,6 +9,7 @@ Every file is written atomically; ``results.json`` last.
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 from typing import Any, Callable
@@ -21,7 +22,7 @@ import jaxflex
 from jaxflex import beam, fileio, plotting
 from jaxflex.analysis import PSDSettings, signal_metrics, samples_at, vibration_reduction_db, welch
 from jaxflex.analysis.metrics import diverged
-from jaxflex.controllers import DFSParams, OpenLoopParams, dfs, open_loop
+from jaxflex.controllers import DFSParams, OpenLoopParams, combine, dfs, open_loop
 from jaxflex.controllers.fuzzy import fuzzy, fuzzy_params, fuzzy_surface
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
@@ -31,6 +32,7 @@ DT = 1e-3
 HORIZON_S = 3.0
 SAMPLE_TIMES_S = (0.1, 0.5, 1.0)
 RUNS = ("open_loop", "dfs", "fuzzy")
+TUNED_CONTROLLERS = ("dfs", "fuzzy", "dfs+fuzzy")
 SIGNALS = ("q1", "tip_deflection_m", "hub_angle_rad")
 
 # What the paper reports (NOTES.md, "Results the paper reports").
@@ -168,6 +170,24 @@ def _report_md(results: dict[str, Any]) -> str:
         "",
     ]
     lines += [f"- `{name}`: {caption}" for name, caption in FIGURES.items()]
+    tuned = results.get("tuned")
+    if tuned:
+        run = tuned["run"]
+        base = "dfs" if tuned["controller"] == "dfs" else "fuzzy"
+        paper_gains = results["controllers"][base]
+        lines += [
+            f"- `fig_tuned_response.png`: q1 and tip deflection, tuned {tuned['controller']} beside the paper's gains",
+            "",
+            f"## Tuned gains ({tuned['controller']}) beside the paper's, on the paper scenario",
+            "",
+            "| | parameters | q1 settling (s) | tip range (m) | tip ISE (m^2 s) |",
+            "|---|---|---|---|---|",
+        ]
+        for label, params, r in (("paper", paper_gains, runs[base]), ("tuned", tuned["params"], run)):
+            lines.append(
+                f"| {label} | {', '.join(f'{k} = {v:.4g}' for k, v in params.items() if isinstance(v, float))} | {_fmt(r['q1']['settling_time_s'], '.3f')} | "
+                f"{_fmt(r['tip_deflection_m']['min'])} .. {_fmt(r['tip_deflection_m']['max'])} | {_fmt(r['tip_deflection_m']['ise'])} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -181,18 +201,53 @@ FIGURES = {
 }
 
 
-def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+def load_tuned(path: str | os.PathLike) -> tuple[str, Any, Any, dict[str, float]]:
+    """Read tuned.json from ``jaxflex tune``: (name, controller, parameters, named parameters).
+
+    Raises:
+      ValueError: naming what is missing or out of range.
+    """
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"--params: cannot read {path}: {err}") from None
+    name = data.get("controller") if isinstance(data, dict) else None
+    named = data.get("params") if isinstance(data, dict) else None
+    if name not in TUNED_CONTROLLERS or not isinstance(named, dict):
+        raise ValueError(f"--params: {path} must hold 'controller' (one of {TUNED_CONTROLLERS}) and 'params'")
+    capacity = int(data.get("config", {}).get("capacity", 64))
+    needed = {"dfs": ("k", "tau_s"), "fuzzy": ("k1", "k2", "k3"), "dfs+fuzzy": ("k", "tau_s", "k1", "k2", "k3")}[name]
+    missing = [n for n in needed if not isinstance(named.get(n), (int, float))]
+    if missing:
+        raise ValueError(f"--params: {path} lacks numeric parameter(s) {missing} for {name}")
+    dfs_part = (dfs(DT, capacity, interpolation="linear"), DFSParams(float(named["k"]), float(named["tau_s"]))) if "k" in needed else None
+    fuzzy_part = (fuzzy(), fuzzy_params(float(named["k1"]), float(named["k2"]), float(named["k3"]))) if "k1" in needed else None
+    if name == "dfs":
+        controller, params = dfs_part
+    elif name == "fuzzy":
+        controller, params = fuzzy_part
+    else:
+        controller, params = combine(dfs_part[0], fuzzy_part[0]), (dfs_part[1], fuzzy_part[1])
+    controller.check(params)
+    return name, controller, params, {n: float(named[n]) for n in needed}
+
+
+def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[str], None] | None = None, params_file: str | os.PathLike | None = None) -> dict[str, Any]:
     """Run the paper's study and write figures, report.md and results.json into ``out_dir``.
 
     Args:
       out_dir: output folder (created if missing).
       n_modes: number of assumed modes (int >= 1; the paper uses 2).
       progress: called with a short message before each stage (e.g. ``print``).
+      params_file: tuned.json from ``jaxflex tune``; its gains are simulated on the paper
+        scenario too and shown beside the paper's (table, figure, ``results.json["tuned"]``).
 
     Returns:
       The results dictionary written to results.json.
     """
     n_modes = beam.check_n_modes(n_modes)
+    tuned = load_tuned(params_file) if params_file is not None else None
     say = progress or (lambda msg: None)
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
@@ -214,6 +269,13 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         traj = jax.block_until_ready(simulate(plant, controller, cparams, scenario))
         trajectories[name] = traj
         runs[name] = _run_metrics(traj, DT)
+
+    tuned_results = None
+    if tuned is not None:
+        tname, tcontroller, tparams, tnamed = tuned
+        say(f"simulating tuned {tname}")
+        ttraj = jax.block_until_ready(simulate(plant, tcontroller, tparams, scenario))
+        tuned_results = {"controller": tname, "params": tnamed, "run": _run_metrics(ttraj, DT)}
 
     say("estimating PSDs")
     mode_freqs = freqs_model[: min(n_modes, 2)]
@@ -258,6 +320,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         "vibration_reduction_db_q1": reduction_q1,
         "psd": {**default.to_dict(), "name": next(iter(ESTIMATORS)), "fs_hz": 1 / DT, "signal": "tip_deflection_m", "scaling": "density, one-sided", "rel_band": REL_BAND},
         "paper": PAPER,
+        "tuned": tuned_results,
         "versions": {"jaxflex": jaxflex.__version__, "jax": jax.__version__, "python": platform.python_version(), "device": jax.devices()[0].device_kind},
     }
 
@@ -278,6 +341,12 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     fparams = fuzzy_params(1.02, 0.30, 1.0, dtype=dtype)
     surf = jax.vmap(lambda e: jax.vmap(lambda v: fuzzy_surface(fparams, e, v))(grid))(grid)
     plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf)), os.path.join(out_dir, "fig4_fuzzy_surface.png"))
+
+    if tuned is not None:
+        base = "dfs" if tuned[0] == "dfs" else "fuzzy"
+        pair = {"open_loop": sig["open_loop"], base: sig[base], f"tuned {tuned[0]}": {"q1": np.asarray(ttraj.x[:, 1]), "tip": np.asarray(ttraj.z[:, 1])}}
+        div[f"tuned {tuned[0]}"] = tuned_results["run"]["diverged"]
+        plotting.save(plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned[0]} ({os.path.basename(str(params_file))})"), os.path.join(out_dir, "fig_tuned_response.png"))
 
     fileio.write_text(os.path.join(out_dir, "report.md"), _report_md(results))
     fileio.write_json(os.path.join(out_dir, "results.json"), results)

@@ -1,20 +1,25 @@
-"""Disturbance scenarios: initial state, tip-force sequence and sensor noise.
+"""Disturbance scenarios: initial state, tip-force sequence, sensor noise, plant perturbation.
 
 A :class:`Scenario` is an all-array pytree; batches of scenarios are the same pytree with a
 leading batch axis (what ``jax.vmap`` maps over). The horizon is the (static) length of the
-force sequence.
+force sequence. :class:`ScenarioSpec` describes a distribution of scenarios declaratively;
+:func:`sample_scenarios` draws a batch from a PRNG key (the paper's scenario can be its first
+member), and :func:`scenario_plant` builds each member's perturbed plant.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import dataclasses
+import math
+from typing import Any, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from jaxflex.plant import DiscretePlant, LinearPlant, n_modes_of
+from jaxflex import beam
+from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant, n_modes_of
 
 READINGS = ("printed", "block")
 
@@ -31,6 +36,40 @@ class Scenario(NamedTuple):
     x0: jax.Array
     force: jax.Array
     noise: jax.Array
+    plant: "PlantPerturbation | None" = None
+
+
+class PlantPerturbation(NamedTuple):
+    """Plant uncertainty of one scenario (each shape ()).
+
+    Attributes:
+      youngs_modulus_scale: factor on E (1 = nominal).
+      density_scale: factor on rho.
+      hub_inertia_scale: factor on I_H.
+      payload_mass_kg: tip payload mass added to the nominal one (kg).
+    """
+
+    youngs_modulus_scale: jax.Array
+    density_scale: jax.Array
+    hub_inertia_scale: jax.Array
+    payload_mass_kg: jax.Array
+
+
+def perturbed_params(params: beam.BeamParams, perturbation: PlantPerturbation | None) -> beam.BeamParams:
+    """The beam parameters of one scenario (the nominal ones when ``perturbation`` is None)."""
+    if perturbation is None:
+        return params
+    return params._replace(
+        youngs_modulus_pa=params.youngs_modulus_pa * perturbation.youngs_modulus_scale,
+        density_kg_m3=params.density_kg_m3 * perturbation.density_scale,
+        hub_inertia_kg_m2=params.hub_inertia_kg_m2 * perturbation.hub_inertia_scale,
+        payload_mass_kg=params.payload_mass_kg + perturbation.payload_mass_kg,
+    )
+
+
+def scenario_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str, scenario: Scenario) -> DiscretePlant:
+    """The sampled plant a scenario runs on (vmap this together with the rollout)."""
+    return discretize(make_plant(perturbed_params(params, scenario.plant), n_modes), dt, method)
 
 
 def horizon_steps(horizon_s: float, dt: float) -> int:
@@ -83,3 +122,144 @@ def initial_condition(x0: ArrayLike, steps: int, dtype=None) -> Scenario:
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an integer >= 1; got {steps!r}")
     return Scenario(x0, jnp.zeros((steps, 1), x0.dtype), jnp.zeros((steps, 2), x0.dtype))
+
+
+@dataclasses.dataclass(frozen=True)
+class ScenarioSpec:
+    """A declarative distribution of disturbance scenarios (SI units; 0 switches a term off).
+
+    Each member starts from rest plus random initial conditions, may receive a tip-force
+    impulse and a tip-force step at random times, sees Gaussian sensor noise, and runs on a
+    plant drawn around the nominal one.
+
+    Attributes:
+      horizon_s: simulated time per scenario (s), > 0.
+      dt: sample time (s), > 0.
+      q0_std_m: standard deviation of each initial modal displacement q_i(0) (m).
+      qdot0_std_m_s: standard deviation of each initial modal rate (m/s).
+      theta0_std_rad: standard deviation of the initial hub angle (rad).
+      impulse_max_n: peak of a rectangular tip-force pulse, amplitude uniform in
+        [-impulse_max_n, impulse_max_n] (N), lasting ``impulse_duration_s``, starting uniformly
+        in the first half of the horizon.
+      impulse_duration_s: pulse duration (s), >= dt when impulses are on.
+      step_max_n: amplitude of a tip-force step, uniform in [-step_max_n, step_max_n] (N),
+        starting uniformly in the first half of the horizon.
+      noise_angle_rad: standard deviation of the hub-angle sensor noise (rad).
+      noise_velocity_rad_s: standard deviation of the hub-velocity sensor noise (rad/s).
+      youngs_modulus_rel: E drawn uniformly in nominal * (1 +- youngs_modulus_rel), in [0, 1).
+      density_rel: rho drawn uniformly in nominal * (1 +- density_rel), in [0, 1).
+      hub_inertia_rel: I_H drawn uniformly in nominal * (1 +- hub_inertia_rel), in [0, 1).
+      payload_max_kg: extra tip payload drawn uniformly in [0, payload_max_kg] (kg).
+      include_paper: make member 0 the paper's scenario (printed reading, nominal plant).
+    """
+
+    horizon_s: float = 1.0
+    dt: float = 1e-3
+    q0_std_m: float = 1e-3
+    qdot0_std_m_s: float = 1e-5
+    theta0_std_rad: float = 0.0
+    impulse_max_n: float = 0.0
+    impulse_duration_s: float = 0.005
+    step_max_n: float = 0.0
+    noise_angle_rad: float = 0.0
+    noise_velocity_rad_s: float = 0.0
+    youngs_modulus_rel: float = 0.0
+    density_rel: float = 0.0
+    hub_inertia_rel: float = 0.0
+    payload_max_kg: float = 0.0
+    include_paper: bool = True
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.name == "include_paper":
+                if not isinstance(value, bool):
+                    raise ValueError(f"include_paper must be true or false; got {value!r}")
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"{f.name} must be a finite number; got {value!r}")
+            if f.name in ("horizon_s", "dt") and value <= 0:
+                raise ValueError(f"{f.name} must be > 0 (seconds); got {value}")
+            if value < 0:
+                raise ValueError(f"{f.name} must be >= 0; got {value}")
+            if f.name.endswith("_rel") and value >= 1:
+                raise ValueError(f"{f.name} must be in [0, 1); got {value}")
+        if self.impulse_max_n > 0 and self.impulse_duration_s < self.dt:
+            raise ValueError(f"impulse_duration_s must be >= dt = {self.dt} s when impulses are on; got {self.impulse_duration_s}")
+        horizon_steps(self.horizon_s, self.dt)
+
+    @property
+    def steps(self) -> int:
+        return horizon_steps(self.horizon_s, self.dt)
+
+    @property
+    def perturbs_plant(self) -> bool:
+        return any(v > 0 for v in (self.youngs_modulus_rel, self.density_rel, self.hub_inertia_rel, self.payload_max_kg))
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> "ScenarioSpec":
+        """Build from a dict (e.g. a TOML table), refusing unknown keys by name."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown scenario key(s) {unknown}; accepted: {sorted(known)}")
+        return cls(**dict(values))
+
+
+def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 2, dtype=None) -> Scenario:
+    """Draw ``n`` scenarios from ``spec`` as one batched Scenario (leading axis n).
+
+    Args:
+      spec: the distribution.
+      key: a JAX PRNG key (``jax.random.key(seed)``).
+      n: number of scenarios (Python int >= 1).
+      n_modes: number of assumed modes of the plant (sets the state size).
+      dtype: floating dtype (default: JAX's default float).
+
+    Returns:
+      Scenario with fields [n, ...]; ``plant`` is None unless the spec perturbs the plant.
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n (number of scenarios) must be an integer >= 1; got {n!r}")
+    n_modes = beam.check_n_modes(n_modes)
+    dtype = jnp.zeros((), dtype).dtype
+    steps, dt = spec.steps, spec.dt
+    n_q = n_modes + 1
+    keys = jax.random.split(key, 10)
+    normal = lambda k, shape: jax.random.normal(k, shape, dtype)
+    uniform = lambda k, shape, lo=-1.0, hi=1.0: jax.random.uniform(k, shape, dtype, lo, hi)
+
+    x0 = jnp.zeros((n, 2 * n_q), dtype)
+    x0 = x0.at[:, 0].set(spec.theta0_std_rad * normal(keys[0], (n,)))
+    x0 = x0.at[:, 1:n_q].set(spec.q0_std_m * normal(keys[1], (n, n_modes)))
+    x0 = x0.at[:, n_q + 1 :].set(spec.qdot0_std_m_s * normal(keys[2], (n, n_modes)))
+
+    t = jnp.arange(steps, dtype=dtype) * dt
+    half = 0.5 * spec.horizon_s
+    pulse_start = uniform(keys[3], (n, 1), 0.0, half)
+    pulse = spec.impulse_max_n * uniform(keys[4], (n, 1)) * ((t[None, :] >= pulse_start) & (t[None, :] < pulse_start + spec.impulse_duration_s))
+    step_start = uniform(keys[5], (n, 1), 0.0, half)
+    step = spec.step_max_n * uniform(keys[6], (n, 1)) * (t[None, :] >= step_start)
+    force = (pulse + step)[:, :, None]
+
+    noise_std = jnp.asarray([spec.noise_angle_rad, spec.noise_velocity_rad_s], dtype)
+    noise = normal(keys[7], (n, steps, 2)) * noise_std
+
+    plant = None
+    if spec.perturbs_plant:
+        u = uniform(keys[8], (n, 3))
+        plant = PlantPerturbation(
+            1 + spec.youngs_modulus_rel * u[:, 0],
+            1 + spec.density_rel * u[:, 1],
+            1 + spec.hub_inertia_rel * u[:, 2],
+            uniform(keys[9], (n,), 0.0, 1.0) * spec.payload_max_kg,
+        )
+    if spec.include_paper:
+        x_paper = np.zeros(2 * n_q)
+        x_paper[1], x_paper[n_q + 1] = 1e-3, 1e-5  # the paper's printed reading
+        x0 = x0.at[0].set(jnp.asarray(x_paper, dtype))
+        force = force.at[0].set(0.0)
+        noise = noise.at[0].set(0.0)
+        if plant is not None:
+            plant = PlantPerturbation(*(leaf.at[0].set(v) for leaf, v in zip(plant, (1.0, 1.0, 1.0, 0.0))))
+    return Scenario(x0, force, noise, plant)

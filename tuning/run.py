@@ -1,0 +1,63 @@
+"""The edge of ``jaxflex tune``: run the tuner, then write tuned.json, history.csv and figures."""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from jaxflex import fileio, plotting
+from jaxflex.analysis import welch
+from jaxflex.rollout import rollout
+from jaxflex.scenarios import scenario_plant
+from tuning.tuner import Problem, TuneConfig, summarize, tune
+
+N_SHOWN_HELDOUT = 3
+
+
+def _figures(state: dict[str, Any], out_dir: str) -> list[str]:
+    problem: Problem = state["problem"]
+    tc, config = problem.tc, problem.config
+    history = state["history"]
+    steps = np.array([h["step"] for h in history])
+    loss = np.array([h["loss"] for h in history])
+    val_rows = [h for h in history if h.get("val_objective") is not None]
+    written = []
+    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller}")
+    plotting.save(fig, os.path.join(out_dir, "loss.png"))
+    written.append("loss.png")
+
+    simulate = jax.jit(rollout, static_argnums=1)
+    gains = {"paper gains": tc.paper, "tuned": tc.to_physical(state["best_raw"])}
+    members = [("paper scenario", jax.tree.map(lambda a: a[0], problem.train))] if config.scenarios.include_paper else []
+    members += [(f"held-out scenario {i + 1}", jax.tree.map(lambda a, i=i: a[i], problem.heldout)) for i in range(min(N_SHOWN_HELDOUT, config.n_heldout))]
+    for idx, (label, scenario) in enumerate(members):
+        plant = problem.nominal if scenario.plant is None else scenario_plant(problem.beam, config.n_modes, problem.dt, config.method, scenario)
+        trajs = {name: simulate(plant, tc.controller, params, scenario) for name, params in gains.items()}
+        t = np.asarray(trajs["tuned"].t)
+        runs = {name: {"tip": np.asarray(tr.z[:, 1]), "hub": np.asarray(tr.z[:, 0])} for name, tr in trajs.items()}
+        div = {name: bool(~np.all(np.isfinite(np.asarray(tr.x)))) for name, tr in trajs.items()}
+        fig = plotting.responses(t, runs, [("tip", "Tip deflection (m)"), ("hub", "Hub angle (rad)")], div, f"{config.controller}: paper vs tuned gains, {label}")
+        name = f"response_{idx}.png"
+        plotting.save(fig, os.path.join(out_dir, name))
+        written.append(name)
+        nperseg = min(1024, t.shape[0])
+        psd = {n: np.asarray(welch(tr.z[:, 1], 1 / problem.dt, nperseg=nperseg)[1]) for n, tr in trajs.items()}
+        freqs = np.asarray(welch(trajs["tuned"].z[:, 1], 1 / problem.dt, nperseg=nperseg)[0])
+        fig = plotting.psds(freqs, psd, np.asarray(problem.freqs_hz), "PSD of tip deflection (m^2/Hz)", f"{config.controller}: paper vs tuned gains, {label}")
+        name = f"psd_{idx}.png"
+        plotting.save(fig, os.path.join(out_dir, name))
+        written.append(name)
+    return written
+
+
+def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, on_step: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Tune, then write ``tuned.json`` (atomically, last), ``history.csv`` and figures into ``out_dir``."""
+    out_dir = os.fspath(out_dir)
+    state = tune(config, out_dir, resume=resume, progress=progress, on_step=on_step)
+    summary = summarize(state)
+    summary["figures"] = _figures(state, out_dir)
+    fileio.write_json(os.path.join(out_dir, "tuned.json"), summary)
+    return summary

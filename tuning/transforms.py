@@ -1,0 +1,120 @@
+"""Unconstrained <-> physical controller parameters, and the controllers the tuner knows.
+
+Gains are positive, so the optimiser works on their logarithms (scale-free for Adam). The
+delay tau lives in [dt, capacity * dt] (one sample up to the delay buffer): the optimiser
+works on ``z`` with ``tau = lo + (hi - lo) * sigmoid(z)``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflex.controllers import Controller, DFSParams, combine, dfs
+from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy, fuzzy_params
+
+CONTROLLERS = ("dfs", "fuzzy", "dfs+fuzzy")
+
+
+class TunedController(NamedTuple):
+    """What the tuner needs to know about one controller.
+
+    Attributes:
+      name: one of CONTROLLERS.
+      controller: the jaxflex controller (DFS with a linear-interpolated delay, so tau is
+        differentiable).
+      to_physical: raw (unconstrained) pytree -> controller parameters.
+      to_raw: controller parameters -> raw pytree.
+      named: controller parameters -> {"k": .., "tau_s": .., "k1": ..} (Python floats).
+      from_named: such a dict -> controller parameters (paper values for missing names).
+      paper: the paper's parameters.
+    """
+
+    name: str
+    controller: Controller
+    to_physical: Callable[[Any], Any]
+    to_raw: Callable[[Any], Any]
+    named: Callable[[Any], dict[str, float]]
+    from_named: Callable[[dict[str, float]], Any]
+    paper: Any
+
+
+def _logit(p: jax.Array) -> jax.Array:
+    return jnp.log(p) - jnp.log1p(-p)
+
+
+def tau_bounds(dt: float, capacity: int) -> tuple[float, float]:
+    """The range tau may take: one sample to the buffer capacity (s)."""
+    return float(dt), float(capacity * dt)
+
+
+def check_tau(tau_s: float, dt: float, capacity: int) -> None:
+    lo, hi = tau_bounds(dt, capacity)
+    if not (np.isfinite(tau_s) and lo <= tau_s <= hi):
+        raise ValueError(f"tau_s must be in [{lo:g}, {hi:g}] s (one sample to the delay buffer capacity of {capacity} samples); got {tau_s}")
+
+
+def _dfs_parts(dt: float, capacity: int):
+    lo, hi = tau_bounds(dt, capacity)
+
+    def to_physical(raw):
+        return DFSParams(jnp.exp(raw["log_k"]), lo + (hi - lo) * jax.nn.sigmoid(raw["tau_z"]))
+
+    def to_raw(p: DFSParams):
+        k = float(np.asarray(p.k))
+        tau = float(np.asarray(p.tau_s))
+        if not (np.isfinite(k) and k > 0):
+            raise ValueError(f"k must be finite and > 0 to be tuned on a log scale; got {k}")
+        check_tau(tau, dt, capacity)
+        frac = np.clip((tau - lo) / (hi - lo), 1e-6, 1 - 1e-6)
+        return {"log_k": jnp.log(jnp.asarray(p.k, float)), "tau_z": _logit(jnp.asarray(frac, jnp.asarray(p.k, float).dtype))}
+
+    named = lambda p: {"k": float(np.asarray(p.k)), "tau_s": float(np.asarray(p.tau_s))}
+    from_named = lambda d: DFSParams(float(d.get("k", 55.0)), float(d.get("tau_s", 0.005)))
+    return dfs(dt, capacity, interpolation="linear"), to_physical, to_raw, named, from_named, DFSParams(55.0, 0.005)
+
+
+def _fuzzy_parts():
+    def to_physical(raw):
+        base = fuzzy_params()
+        dtype = raw["log_k1"].dtype
+        return FuzzyParams(
+            jnp.exp(raw["log_k1"]), jnp.exp(raw["log_k2"]), jnp.exp(raw["log_k3"]),
+            base.angle_centres.astype(dtype), base.velocity_centres.astype(dtype), base.torque_centres.astype(dtype),
+        )
+
+    def to_raw(p: FuzzyParams):
+        out = {}
+        for name in ("k1", "k2", "k3"):
+            v = float(np.asarray(getattr(p, name)))
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be finite and > 0 to be tuned on a log scale; got {v}")
+            out[f"log_{name}"] = jnp.log(jnp.asarray(getattr(p, name), float))
+        return out
+
+    named = lambda p: {name: float(np.asarray(getattr(p, name))) for name in ("k1", "k2", "k3")}
+    from_named = lambda d: fuzzy_params(float(d.get("k1", 1.02)), float(d.get("k2", 0.30)), float(d.get("k3", 1.0)))
+    return fuzzy(), to_physical, to_raw, named, from_named, fuzzy_params(1.02, 0.30, 1.0)
+
+
+def tuned_controller(name: str, dt: float = 1e-3, capacity: int = 64) -> TunedController:
+    """The controller ``name`` (one of CONTROLLERS) with its parameter transforms."""
+    if name == "dfs":
+        return TunedController(name, *_dfs_parts(dt, capacity))
+    if name == "fuzzy":
+        return TunedController(name, *_fuzzy_parts())
+    if name == "dfs+fuzzy":
+        d, f = _dfs_parts(dt, capacity), _fuzzy_parts()
+        return TunedController(
+            name,
+            combine(d[0], f[0]),
+            lambda raw: (d[1](raw["dfs"]), f[1](raw["fuzzy"])),
+            lambda p: {"dfs": d[2](p[0]), "fuzzy": f[2](p[1])},
+            lambda p: {**d[3](p[0]), **f[3](p[1])},
+            lambda named: (d[4](named), f[4](named)),
+            (d[5], f[5]),
+        )
+    raise ValueError(f"controller must be one of {CONTROLLERS}; got {name!r}")

@@ -1,0 +1,373 @@
+"""The optax tuning loop: one jitted train step, held-out validation, early stopping, checkpoints.
+
+``tune(config, out_dir)`` samples a training batch and a held-out batch of scenarios from one
+seed, normalises the objective by the paper's gains on the training batch, then runs
+``steps`` optimiser updates of the unconstrained parameters. Every ``checkpoint_every``
+steps it writes ``checkpoint.npz`` atomically; ``resume=True`` continues from it, and since
+every step is deterministic the result equals an uninterrupted run with the same seed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import math
+import os
+from typing import Any, Callable, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaxflex import beam, fileio
+from jaxflex.plant import discretize, make_plant
+from jaxflex.rollout import rollout
+from jaxflex.scenarios import Scenario, ScenarioSpec, sample_scenarios, scenario_plant
+from tuning import objectives
+from tuning.objectives import ObjectiveSpec
+from tuning.transforms import CONTROLLERS, TunedController, tuned_controller
+
+CHECKPOINT = "checkpoint.npz"
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneConfig:
+    """Everything that defines a tuning run (the checkpoint refuses to resume another one).
+
+    Attributes:
+      controller: "dfs", "fuzzy" or "dfs+fuzzy".
+      n_scenarios: training scenarios (>= 1).
+      n_heldout: held-out validation scenarios (>= 1).
+      steps: optimiser steps (>= 1).
+      learning_rate: Adam step size on the unconstrained parameters (> 0).
+      clip_norm: global gradient-norm clip (> 0).
+      seed: PRNG seed for the scenarios.
+      eval_every: validate every this many steps (>= 1).
+      patience: stop after this many validations without improvement (>= 1).
+      checkpoint_every: write a checkpoint every this many steps (>= 1).
+      n_modes: assumed modes of the plant (>= 1).
+      method: "rk4" or "zoh".
+      capacity: delay buffer capacity in samples; tau is tuned in [dt, capacity dt].
+      initial: starting physical parameters by name (k, tau_s, k1, k2, k3); missing names
+        take the paper's values.
+      scenarios: the scenario distribution.
+      objective: the objective.
+    """
+
+    controller: str = "dfs"
+    n_scenarios: int = 256
+    n_heldout: int = 64
+    steps: int = 200
+    learning_rate: float = 0.05
+    clip_norm: float = 1.0
+    seed: int = 0
+    eval_every: int = 10
+    patience: int = 10
+    checkpoint_every: int = 25
+    n_modes: int = 2
+    method: str = "rk4"
+    capacity: int = 32
+    initial: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    scenarios: ScenarioSpec = ScenarioSpec()
+    objective: ObjectiveSpec = ObjectiveSpec()
+
+    def __post_init__(self) -> None:
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
+        for name in ("n_scenarios", "n_heldout", "steps", "eval_every", "patience", "checkpoint_every", "n_modes", "capacity"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1; got {v!r}")
+        if self.capacity < 2:
+            raise ValueError(f"capacity must be >= 2 samples; got {self.capacity}")
+        for name in ("learning_rate", "clip_norm"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0; got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ValueError(f"seed must be an integer; got {self.seed!r}")
+        if self.method not in ("rk4", "zoh"):
+            raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
+        allowed = {"dfs": {"k", "tau_s"}, "fuzzy": {"k1", "k2", "k3"}}
+        allowed["dfs+fuzzy"] = allowed["dfs"] | allowed["fuzzy"]
+        unknown = sorted(set(self.initial) - allowed[self.controller])
+        if unknown:
+            raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed[self.controller])}")
+
+    def to_dict(self) -> dict[str, Any]:
+        out = dataclasses.asdict(self)
+        out["initial"] = dict(self.initial)
+        return out
+
+    def fingerprint(self) -> str:
+        """Hash of everything but ``steps`` (more steps may be asked of a resumed run)."""
+        d = self.to_dict()
+        d.pop("steps")
+        d["dtype"] = str(jnp.zeros(()).dtype)
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], **overrides: Any) -> "TuneConfig":
+        """From a dict shaped like the TOML file: top-level keys, [scenarios], [objective], [initial]."""
+        values = dict(values)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown config key(s) {unknown}; accepted: {sorted(known)}")
+        if "scenarios" in values:
+            values["scenarios"] = ScenarioSpec.from_mapping(values["scenarios"])
+        if "objective" in values:
+            values["objective"] = ObjectiveSpec.from_mapping(values["objective"])
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**values)
+
+
+class Problem:
+    """The pieces a run needs: batches, the controller, the loss, the jitted functions."""
+
+    def __init__(self, config: TuneConfig):
+        self.config = config
+        spec = config.scenarios
+        self.dt = spec.dt
+        self.tc: TunedController = tuned_controller(config.controller, spec.dt, config.capacity)
+        self.beam = beam.BeamParams()
+        self.freqs_hz = beam.natural_frequencies_hz(self.beam, config.n_modes)
+        key_train, key_val = jax.random.split(jax.random.key(config.seed))
+        self.train = sample_scenarios(spec, key_train, config.n_scenarios, config.n_modes)
+        self.heldout = sample_scenarios(dataclasses.replace(spec, include_paper=False), key_val, config.n_heldout, config.n_modes)
+        self.nominal = discretize(make_plant(self.beam, config.n_modes), spec.dt, config.method)
+        initial = self.tc.from_named(dict(config.initial))
+        self.initial_raw = self.tc.to_raw(initial)
+        self.paper_raw = self.tc.to_raw(self.tc.paper)
+        self.optimizer = optax.chain(optax.clip_by_global_norm(config.clip_norm), optax.adam(config.learning_rate))
+        self.scales = jax.jit(self._terms)(self.paper_raw, self.train)
+        self.scales = objectives.reference_scales(self.scales)
+        self.evaluate = jax.jit(self._objective)
+        self.train_step = self._make_train_step()
+
+    def _terms(self, raw: Any, batch: Scenario) -> objectives.Terms:
+        params = self.tc.to_physical(raw)
+        config = self.config
+
+        def one(scenario: Scenario) -> objectives.Terms:
+            plant = self.nominal if scenario.plant is None else scenario_plant(self.beam, config.n_modes, self.dt, config.method, scenario)
+            if config.objective.needs_trajectory:
+                traj = rollout(plant, self.tc.controller, params, scenario)
+                return objectives.terms_from_trajectory(traj, self.dt, self.freqs_hz)
+            return objectives.terms_from_metrics(rollout(plant, self.tc.controller, params, scenario, output="metrics"))
+
+        return jax.vmap(one)(batch)
+
+    def log_radius(self, raw: Any) -> jax.Array | None:
+        """Smooth log spectral radius of the nominal sampled DFS loop (None without DFS)."""
+        if self.config.controller != "dfs":
+            return None  # a fuzzy part is nonlinear: no sampled-loop matrix
+        params = self.tc.to_physical(raw)
+        loop = objectives.dfs_loop_matrix(self.nominal, params.k, params.tau_s, self.config.capacity)
+        return objectives.log_spectral_radius_smooth(objectives.deflate_structural(loop, self.nominal.Ad.shape[0]))
+
+    def _objective(self, raw: Any, batch: Scenario) -> tuple[jax.Array, dict[str, jax.Array]]:
+        terms = self._terms(raw, batch)
+        losses = objectives.scenario_losses(terms, self.scales, self.config.objective)
+        value = objectives.reduce_losses(losses, self.config.objective)
+        aux = {"objective": value}
+        log_r = self.log_radius(raw)
+        if log_r is not None:
+            penalty = objectives.stability_penalty(log_r, self.dt, self.config.objective)
+            aux["penalty"] = penalty
+            value = value + penalty
+        return value, aux
+
+    def _make_train_step(self) -> Callable:
+        optimizer = self.optimizer
+
+        @jax.jit
+        def train_step(raw, opt_state, batch):
+            (loss, aux), grads = jax.value_and_grad(self._objective, has_aux=True)(raw, batch)
+            updates, opt_state = optimizer.update(grads, opt_state, raw)
+            raw = optax.apply_updates(raw, updates)
+            return raw, opt_state, {"loss": loss, "grad_norm": optax.global_norm(grads), **aux}
+
+        return train_step
+
+
+def _save_checkpoint(path: str, state: dict[str, Any]) -> None:
+    leaves = jax.tree.leaves((state["raw"], state["opt_state"], state["best_raw"]))
+    meta = {k: v for k, v in state.items() if k not in ("raw", "opt_state", "best_raw")}
+    arrays = {f"leaf_{i}": np.asarray(leaf) for i, leaf in enumerate(leaves)}
+
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            np.savez(f, meta=np.frombuffer(json.dumps(fileio.to_jsonable(meta)).encode(), dtype=np.uint8), **arrays)
+
+    fileio.atomic_write(path, write)
+
+
+def _load_checkpoint(path: str, template: tuple[Any, Any, Any]) -> dict[str, Any]:
+    with np.load(path) as data:
+        meta = json.loads(bytes(data["meta"]).decode())
+        treedef = jax.tree.structure(template)
+        n = treedef.num_leaves
+        leaves = [jnp.asarray(data[f"leaf_{i}"]) for i in range(n)]
+    raw, opt_state, best_raw = jax.tree.unflatten(treedef, leaves)
+    return {**meta, "raw": raw, "opt_state": opt_state, "best_raw": best_raw}
+
+
+def _history_csv(history: list[dict[str, Any]], names: list[str]) -> str:
+    cols = ["step", "loss", "objective", "penalty", "val_objective", "grad_norm"] + names
+    buf = io.StringIO()
+    buf.write(",".join(cols) + "\n")
+    for row in history:
+        buf.write(",".join("" if row.get(c) is None else repr(float(row[c])) if c != "step" else str(row[c]) for c in cols) + "\n")
+    return buf.getvalue()
+
+
+def tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, on_step: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Run (or resume) a tuning run; returns the final state (raw/best parameters, history).
+
+    Args:
+      config: the run.
+      out_dir: folder for checkpoint.npz and history.csv.
+      resume: continue from ``out_dir/checkpoint.npz`` (an error if it is missing or was made
+        with another configuration).
+      progress: show a tqdm progress bar with the loss and the validation objective.
+      on_step: called with the step number after each step (tests use it to interrupt).
+
+    Raises:
+      ValueError: bad configuration, a checkpoint of another run, or an objective that
+        became NaN (the last checkpoint is kept).
+    """
+    out_dir = os.fspath(out_dir)
+    os.makedirs(out_dir, exist_ok=True)
+    ckpt_path = os.path.join(out_dir, CHECKPOINT)
+    problem = Problem(config)
+    fingerprint = config.fingerprint()
+    names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
+    if resume:
+        if not os.path.exists(ckpt_path):
+            raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
+        template = (problem.initial_raw, problem.optimizer.init(problem.initial_raw), problem.initial_raw)
+        state = _load_checkpoint(ckpt_path, template)
+        if state["fingerprint"] != fingerprint:
+            raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration (fingerprint {state['fingerprint']} != {fingerprint})")
+    else:
+        val0 = float(problem.evaluate(problem.initial_raw, problem.heldout)[0])
+        state = {
+            "step": 0,
+            "raw": problem.initial_raw,
+            "opt_state": problem.optimizer.init(problem.initial_raw),
+            "best_raw": problem.initial_raw,
+            "best_val": val0,
+            "best_step": 0,
+            "bad_evals": 0,
+            "stopped_early": False,
+            "history": [],
+            "fingerprint": fingerprint,
+        }
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=config.steps, initial=min(state["step"], config.steps), desc=f"tune {config.controller}", unit="step")
+    try:
+        while state["step"] < config.steps and not state["stopped_early"]:
+            raw, opt_state, info = problem.train_step(state["raw"], state["opt_state"], problem.train)
+            loss = float(info["loss"])
+            if not math.isfinite(loss):
+                raise ValueError(
+                    f"the objective became {loss} at step {state['step'] + 1}: lower learning_rate or clip_norm, "
+                    f"or check the scenarios; the last checkpoint in {out_dir} is kept"
+                )
+            state["raw"], state["opt_state"], state["step"] = raw, opt_state, state["step"] + 1
+            row = {"step": state["step"], **{k: float(v) for k, v in info.items()}}
+            row.update(problem.tc.named(problem.tc.to_physical(raw)))
+            if state["step"] % config.eval_every == 0 or state["step"] == config.steps:
+                val = float(problem.evaluate(raw, problem.heldout)[0])
+                row["val_objective"] = val
+                if val < state["best_val"]:
+                    state["best_val"], state["best_raw"], state["best_step"], state["bad_evals"] = val, raw, state["step"], 0
+                else:
+                    state["bad_evals"] += 1
+                    state["stopped_early"] = state["bad_evals"] >= config.patience
+            state["history"].append(row)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss:.4g}", val=f"{state['best_val']:.4g}")
+            if state["step"] % config.checkpoint_every == 0:
+                _save_checkpoint(ckpt_path, state)
+                fileio.write_text(os.path.join(out_dir, "history.csv"), _history_csv(state["history"], names))
+            if on_step is not None:
+                on_step(state["step"])
+    finally:
+        if bar is not None:
+            bar.close()
+    _save_checkpoint(ckpt_path, state)
+    fileio.write_text(os.path.join(out_dir, "history.csv"), _history_csv(state["history"], names))
+    state["problem"] = problem
+    state["names"] = names
+    return state
+
+
+def summarize(state: dict[str, Any]) -> dict[str, Any]:
+    """The content of tuned.json: parameters, objectives before/after, stability."""
+    problem: Problem = state["problem"]
+    tc = problem.tc
+    best = state["best_raw"]
+    ev = lambda raw, batch: float(problem.evaluate(raw, batch)[1]["objective"])
+    out: dict[str, Any] = {
+        "controller": problem.config.controller,
+        "params": tc.named(tc.to_physical(best)),
+        "paper_params": tc.named(tc.paper),
+        "initial_params": tc.named(tc.to_physical(problem.initial_raw)),
+        "objective": {
+            "train": {"before": ev(problem.initial_raw, problem.train), "after": ev(best, problem.train), "paper": ev(problem.paper_raw, problem.train)},
+            "heldout": {"before": ev(problem.initial_raw, problem.heldout), "after": ev(best, problem.heldout), "paper": ev(problem.paper_raw, problem.heldout)},
+            "definition": "weighted, normalised per-scenario losses (1.0 = the paper's gains on the training batch for each unit weight), "
+            f"combined by {problem.config.objective.reduction}",
+        },
+        "steps_run": state["step"],
+        "best_step": state["best_step"],
+        "stopped_early": state["stopped_early"],
+        "config": problem.config.to_dict(),
+    }
+    dfs_params = None
+    physical = tc.to_physical(best)
+    if problem.config.controller == "dfs":
+        dfs_params = physical
+    elif problem.config.controller == "dfs+fuzzy":
+        dfs_params = physical[0]
+    if dfs_params is not None:
+        n_x = problem.nominal.Ad.shape[0]
+
+        def radius(p):
+            loop = objectives.dfs_loop_matrix(problem.nominal, p.k, p.tau_s, problem.config.capacity)
+            return float(objectives.spectral_radius(objectives.deflate_structural(loop, n_x)))
+
+        rho = radius(dfs_params)
+        paper_rho = radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0])
+        out["stability"] = {
+            "spectral_radius": rho,
+            "paper_spectral_radius": paper_rho,
+            "decay_rate_per_s": -math.log(rho) / problem.dt if rho > 0 else math.inf,
+            "stable": rho < 1,
+            "note": "sampled DFS loop on the nominal plant with its delay states; the structural z = 1 (no position action) is excluded"
+            + ("; the fuzzy part of dfs+fuzzy is not included (nonlinear)" if problem.config.controller == "dfs+fuzzy" else ""),
+        }
+    return out
+
+
+def load_config(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a TOML config file into a dict (see TuneConfig.from_mapping)."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    with open(path, "rb") as f:
+        return tomllib.load(f)
+
+
+__all__ = ["TuneConfig", "Problem", "tune", "summarize", "load_config"]
