@@ -243,7 +243,7 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
     force = (pulse + step)[:, :, None]
 
     noise_std = jnp.asarray([spec.noise_angle_rad, spec.noise_velocity_rad_s], dtype)
-    noise = normal(keys[7], (n, steps, 2)) * noise_std
+    noise = normal(keys[7], (n, steps, 2)) * noise_std[None, None, :]
 
     plant = None
     if spec.perturbs_plant:

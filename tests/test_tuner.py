@@ -1,0 +1,167 @@
+"""The tuner: objectives against NumPy, the DFS loop matrix against a rollout, gradients,
+compile-once, resume equals an uninterrupted run, held-out improvement, and bad input."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxflex as jf
+from jaxflex.controllers import DFSParams, dfs
+from jaxflex.scenarios import ScenarioSpec, sample_scenarios
+from tests.helpers import tree_allclose
+from tuning import objectives
+from tuning.objectives import ObjectiveSpec
+from tuning.transforms import tuned_controller
+from tuning.tuner import CHECKPOINT, Problem, TuneConfig, summarize, tune
+
+RTOL_FD = 1e-5  # central differences, float64
+
+SMALL = dict(n_scenarios=12, n_heldout=8, scenarios=ScenarioSpec(horizon_s=0.3, impulse_max_n=0.3))
+
+
+@pytest.fixture(scope="module")
+def plant2():
+    return jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")
+
+
+def test_reductions_against_numpy():
+    losses = jnp.asarray(np.random.default_rng(0).uniform(size=40))
+    l = np.asarray(losses)
+    assert float(objectives.reduce_losses(losses, ObjectiveSpec(reduction="mean"))) == pytest.approx(l.mean(), rel=1e-12)
+    worst4 = np.sort(l)[-4:].mean()
+    assert float(objectives.reduce_losses(losses, ObjectiveSpec(reduction="cvar", cvar_level=0.9))) == pytest.approx(worst4, rel=1e-12)
+    smooth = float(objectives.reduce_losses(losses, ObjectiveSpec(reduction="worst", worst_temperature=0.01)))
+    assert l.max() - 0.01 * np.log(40) <= smooth <= l.max() + 1e-12
+
+
+def test_modal_energy_against_numpy_dft():
+    dt, steps = 1e-3, 800
+    t = np.arange(steps) * dt
+    tip = np.exp(-2 * t) * np.sin(2 * np.pi * 13.3 * t) + 0.3 * np.sin(2 * np.pi * 36 * t)
+    freqs = np.array([13.3, 36.5])
+    w = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(steps) / steps)
+    expected = sum(abs(np.sum(w * tip * np.exp(-2j * np.pi * f * t)) * dt) ** 2 for f in freqs)
+    assert float(objectives.modal_energy(jnp.asarray(tip), dt, jnp.asarray(freqs))) == pytest.approx(expected, rel=1e-10)
+
+
+def test_dfs_loop_matrix_reproduces_rollout_and_deflation(plant2):
+    capacity, tau = 16, 0.0063
+    loop = np.asarray(objectives.dfs_loop_matrix(plant2, 55.0, tau, capacity))
+    sc = jf.paper_scenario(plant2, horizon_s=0.2)
+    traj = jf.rollout(plant2, dfs(1e-3, capacity, "linear"), DFSParams(55.0, tau), sc)
+    z = np.concatenate([np.asarray(sc.x0), np.full(capacity, float(sc.x0[0]))])
+    for k in range(199):
+        z = loop @ z
+        np.testing.assert_allclose(z[:6], np.asarray(traj.x[k + 1]), rtol=1e-10, atol=1e-16)
+    eig_full = np.linalg.eigvals(loop)
+    eig_red = np.linalg.eigvals(np.asarray(objectives.deflate_structural(jnp.asarray(loop), 6)))
+    # the deflated spectrum is the full one with exactly one eigenvalue 1 removed
+    i = np.argmin(np.abs(eig_full - 1))
+    assert abs(eig_full[i] - 1) < 1e-9
+    np.testing.assert_allclose(np.sort_complex(np.delete(eig_full, i)), np.sort_complex(eig_red), atol=1e-7)
+    rho = np.abs(eig_red).max()
+    assert float(objectives.spectral_radius(jnp.asarray(eig_red * 0 + np.diag(eig_red)))) == pytest.approx(rho)
+    smooth = float(objectives.log_spectral_radius_smooth(objectives.deflate_structural(jnp.asarray(loop), 6)))
+    assert np.log(rho) <= smooth + 1e-12 and smooth - np.log(rho) < 1e-5  # Gelfand bound from above
+
+
+def test_tuner_objective_gradient_matches_fd():
+    cfg = TuneConfig(controller="dfs", **SMALL, objective=ObjectiveSpec(tip_ise=1.0, hub_ise=0.3, effort=0.1, vibration=0.5, min_decay_rate=50.0))
+    problem = Problem(cfg)
+    raw = problem.tc.to_raw(DFSParams(80.0, 0.0043))
+    f = jax.jit(lambda r: problem._objective(r, problem.train)[0])
+    grads = jax.grad(f)(raw)
+    for name in ("log_k", "tau_z"):
+        h = 1e-5
+        fd = (float(f({**raw, name: raw[name] + h})) - float(f({**raw, name: raw[name] - h}))) / (2 * h)
+        np.testing.assert_allclose(float(grads[name]), fd, rtol=RTOL_FD)
+    assert float(problem._objective(raw, problem.train)[1]["penalty"]) > 0  # the penalty is active here
+
+
+def test_second_train_step_does_not_retrace():
+    problem = Problem(TuneConfig(controller="fuzzy", **SMALL))
+    calls = []
+    original = problem._objective
+    problem._objective = lambda *a: calls.append(1) or original(*a)
+    raw, opt = problem.initial_raw, problem.optimizer.init(problem.initial_raw)
+    for _ in range(3):
+        raw, opt, info = problem.train_step(raw, opt, problem.train)
+    assert len(calls) == 1
+    assert np.isfinite(float(info["loss"]))
+
+
+def test_resume_after_interrupt_equals_uninterrupted(tmp_path):
+    cfg = TuneConfig(controller="dfs", steps=12, checkpoint_every=4, eval_every=3, **SMALL)
+    full = tune(cfg, tmp_path / "full", progress=False)
+
+    def interrupt(step):
+        if step == 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        tune(cfg, tmp_path / "cut", progress=False, on_step=interrupt)
+    with np.load(tmp_path / "cut" / CHECKPOINT) as data:
+        assert json.loads(bytes(data["meta"]).decode())["step"] == 4  # lost at most one interval
+    resumed = tune(cfg, tmp_path / "cut", resume=True, progress=False)
+    assert resumed["step"] == full["step"] == 12
+    tree_allclose(resumed["raw"], full["raw"], rtol=0)
+    tree_allclose(resumed["best_raw"], full["best_raw"], rtol=0)
+    assert [h["loss"] for h in resumed["history"]] == [h["loss"] for h in full["history"]]
+    with pytest.raises(ValueError, match="another configuration"):
+        tune(TuneConfig(controller="dfs", steps=12, seed=1, **SMALL), tmp_path / "cut", resume=True, progress=False)
+
+
+@pytest.mark.parametrize("controller", ["dfs", "fuzzy"])
+def test_tuning_lowers_heldout_objective(tmp_path, controller):
+    cfg = TuneConfig(controller=controller, n_scenarios=24, n_heldout=12, steps=30, eval_every=5, scenarios=ScenarioSpec(horizon_s=0.4, impulse_max_n=0.3, youngs_modulus_rel=0.1))
+    summary = summarize(tune(cfg, tmp_path, progress=False))
+    obj = summary["objective"]
+    assert obj["train"]["before"] == pytest.approx(1.0, rel=1e-9)  # normalised by the paper's gains
+    assert obj["heldout"]["after"] < 0.97 * obj["heldout"]["before"]
+    assert obj["train"]["after"] < obj["train"]["before"]
+    if controller == "dfs":
+        assert summary["stability"]["stable"] and summary["stability"]["decay_rate_per_s"] > cfg.objective.min_decay_rate
+    assert set(summary["params"]) == ({"k", "tau_s"} if controller == "dfs" else {"k1", "k2", "k3"})
+    assert (tmp_path / "history.csv").read_text().count("\n") == summary["steps_run"] + 1
+
+
+def test_bad_input_is_refused(tmp_path):
+    with pytest.raises(ValueError, match=r"tau_s must be in \[0.001, 0.032\]"):
+        Problem(TuneConfig(controller="dfs", initial={"tau_s": 0.1}, **SMALL))
+    with pytest.raises(ValueError, match="controller must be one of"):
+        TuneConfig(controller="lqr")
+    with pytest.raises(ValueError, match=r"unknown config key\(s\) \['stepz'\]"):
+        TuneConfig.from_mapping({"stepz": 3})
+    with pytest.raises(ValueError, match=r"unknown scenario key\(s\) \['noise'\]"):
+        TuneConfig.from_mapping({"scenarios": {"noise": 1.0}})
+    with pytest.raises(ValueError, match=r"unknown objective key\(s\)"):
+        TuneConfig.from_mapping({"objective": {"tip": 1.0}})
+    with pytest.raises(ValueError, match="youngs_modulus_rel must be in"):
+        ScenarioSpec(youngs_modulus_rel=1.5)
+    with pytest.raises(ValueError, match="noise_angle_rad must be >= 0"):
+        ScenarioSpec(noise_angle_rad=-1.0)
+    with pytest.raises(ValueError, match="n \\(number of scenarios\\) must be an integer >= 1"):
+        sample_scenarios(ScenarioSpec(), jax.random.key(0), 0)
+    # an objective that becomes NaN/inf stops with a clear message and keeps the last checkpoint
+    cfg = TuneConfig(controller="dfs", steps=10, checkpoint_every=1, learning_rate=50.0, clip_norm=1e6, **SMALL)
+    with pytest.raises(ValueError, match="the objective became"):
+        tune(cfg, tmp_path, progress=False)
+    assert (tmp_path / CHECKPOINT).exists()
+
+
+def test_cli_tune_with_toml_config(tmp_path):
+    from jaxflex import cli
+
+    config = tmp_path / "tune.toml"
+    config.write_text('controller = "dfs"\nn_heldout = 1\neval_every = 2\n[scenarios]\nhorizon_s = 0.2\n[objective]\nreduction = "cvar"\n')
+    assert cli.main(["tune", "--config", str(config), "--scenarios", "8", "--steps", "4", "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    saved = json.loads((tmp_path / "o" / "tuned.json").read_text())
+    assert saved["config"]["objective"]["reduction"] == "cvar" and saved["steps_run"] == 4
+    for name in saved["figures"]:
+        assert (tmp_path / "o" / name).read_bytes()[:4] == b"\x89PNG"
+    bad = tmp_path / "bad.toml"
+    bad.write_text("learning_rat = 0.1\n")
+    assert cli.main(["tune", "--config", str(bad), "--out", str(tmp_path / "b"), "--no-progress"]) == 2
