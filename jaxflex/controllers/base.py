@@ -20,6 +20,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 class Controller(NamedTuple):
@@ -42,7 +43,7 @@ def check_finite_scalar(name: str, value: Any, *, positive: bool = False, nonneg
       ValueError: naming ``name`` and the accepted range when ``value`` is not a finite
         scalar (and positive / non-negative where asked).
     """
-    arr = jnp.asarray(value)
+    arr = np.asarray(value)
     if arr.ndim != 0:
         raise ValueError(f"{name} must be a scalar; got shape {arr.shape}")
     v = float(arr)
