@@ -7,6 +7,8 @@ import sys
 import time
 from typing import Sequence
 
+from jaxflex import fileio
+
 
 def _positive_int(text: str) -> int:
     try:
@@ -39,6 +41,18 @@ def _parser() -> argparse.ArgumentParser:
     tun.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
     tun.add_argument("--no-progress", action="store_true", help="no progress bar")
     tun.add_argument("--x64", action="store_true", help="tune in float64 (default float32)")
+
+    mc = sub.add_parser("montecarlo", help="batched Monte Carlo over sampled scenarios: statistics, histograms, percentile bands")
+    mc.add_argument("--controller", choices=("open_loop", "dfs", "fuzzy", "dfs+fuzzy"), default=None, help="controller (default dfs+fuzzy)")
+    mc.add_argument("--params", default=None, help="tuned.json from `jaxflex tune` (default: the paper's gains)")
+    mc.add_argument("--scenarios", type=_positive_int, default=None, help="number of scenarios N (default 10000)")
+    mc.add_argument("--chunk", type=_positive_int, default=None, help="scenarios per chunk; memory grows with it (default 4096)")
+    mc.add_argument("--seed", type=int, default=None, help="PRNG seed (default 0)")
+    mc.add_argument("--config", default=None, help="TOML file: MCConfig keys (percentiles, n_modes, ...) and a [scenarios] table")
+    mc.add_argument("--out", default="montecarlo", help="output folder (default ./montecarlo)")
+    mc.add_argument("--resume", action="store_true", help="continue a run in OUT, skipping the chunks already written")
+    mc.add_argument("--no-progress", action="store_true", help="no progress bar")
+    mc.add_argument("--x64", action="store_true", help="simulate in float64 (default float32)")
     return parser
 
 
@@ -70,6 +84,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.command == "tune":
         return _tune(args)
+    if args.command == "montecarlo":
+        return _montecarlo(args)
     return 2  # pragma: no cover - argparse enforces the choices
 
 
@@ -78,10 +94,10 @@ def _tune(args: argparse.Namespace) -> int:
     import os
 
     from tuning.run import run_tune
-    from tuning.tuner import TuneConfig, load_config
+    from tuning.tuner import TuneConfig
 
     try:
-        values = load_config(args.config) if args.config else {}
+        values = fileio.read_toml(args.config) if args.config else {}
         config = TuneConfig.from_mapping(
             values,
             controller=args.controller,
@@ -108,3 +124,39 @@ def _tune(args: argparse.Namespace) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _montecarlo(args: argparse.Namespace) -> int:
+    import dataclasses
+    import os
+
+    from jaxflex.montecarlo import MCConfig, run_montecarlo
+    from jaxflex.report import load_tuned
+    from jaxflex.scenarios import ScenarioSpec
+
+    try:
+        values = fileio.read_toml(args.config) if args.config else {}
+        known = {f.name for f in dataclasses.fields(MCConfig)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown config key(s) {unknown}; accepted: {sorted(known)}")
+        if "scenarios" in values:
+            values["scenarios"] = ScenarioSpec.from_mapping({"horizon_s": 3.0, **values["scenarios"]})
+        if "percentiles" in values:
+            values["percentiles"] = tuple(values["percentiles"])
+        if args.params:
+            name, _, _, named = load_tuned(args.params)
+            values.setdefault("controller", name)
+            values["params"] = named
+        overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed}
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        summary = run_montecarlo(MCConfig(**values), args.out, resume=args.resume, progress=not args.no_progress)
+    except (ValueError, OSError) as err:
+        print(f"jaxflex montecarlo: error: {err}", file=sys.stderr)
+        return 2
+    tip = summary["metrics"]["peak_tip_deflection_m"]
+    print(f"{summary['n_scenarios']} scenarios on {summary['devices']} device(s): diverged fraction {summary['diverged_fraction']:.4g}")
+    print(f"peak tip deflection (m): mean {tip['mean']:.4g}, p5 {tip.get('p5')}, p95 {tip.get('p95')}")
+    print(f"wrote {os.path.join(args.out, 'summary.json')} and figures")
+    return 0
+

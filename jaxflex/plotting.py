@@ -137,3 +137,41 @@ def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val:
     ax.set_title(title)
     fig.tight_layout()
     return fig
+
+
+def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title: str, bins: int = 50) -> plt.Figure:
+    """One histogram per metric (non-finite values left out and counted in the title)."""
+    names = list(data)
+    cols = 3
+    rows = -(-len(names) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(11, 3.0 * rows), squeeze=False)
+    for ax, name in zip(axes.ravel(), names):
+        values = np.asarray(data[name], float)
+        finite = values[np.isfinite(values)]
+        if finite.size:
+            ax.hist(finite, bins=bins, color="C0", alpha=0.8)
+        ax.set_title(f"{name} ({values.size - finite.size} non-finite)" if finite.size < values.size else name, fontsize=9)
+        ax.set_xlabel(labels.get(name, name), fontsize=7)
+        ax.grid(alpha=0.3)
+    for ax in axes.ravel()[len(names) :]:
+        ax.axis("off")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[float], ylabel: str, title: str) -> plt.Figure:
+    """Percentile bands of a signal against time; bands [len(percentiles), T], percentiles ascending."""
+    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    n = len(percentiles)
+    for i in range(n // 2):
+        ax.fill_between(t, bands[i], bands[n - 1 - i], alpha=0.25 + 0.15 * i, color="C0", lw=0, label=f"p{percentiles[i]:g}-p{percentiles[n - 1 - i]:g}")
+    if 50.0 in percentiles:
+        ax.plot(t, bands[list(percentiles).index(50.0)], color="C0", lw=1.0, label="median")
+    ax.set_xlabel("Time (s)")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    return fig

@@ -360,14 +360,4 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def load_config(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a TOML config file into a dict (see TuneConfig.from_mapping)."""
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
-    with open(path, "rb") as f:
-        return tomllib.load(f)
-
-
-__all__ = ["TuneConfig", "Problem", "tune", "summarize", "load_config"]
+__all__ = ["TuneConfig", "Problem", "tune", "summarize"]

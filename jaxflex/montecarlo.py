@@ -1,0 +1,273 @@
+"""Monte Carlo over scenarios: chunked, device-sharded, resumable, with streaming memory.
+
+Chunk ``i`` holds the scenarios drawn from ``jax.random.fold_in(key(seed), i)``, so every
+scenario is fixed by the seed and its chunk alone, whatever the number of devices or the
+order in which chunks run. Each chunk is one jitted, vmapped ``rollout(output="metrics")``
+with its scenario axis sharded over all local devices (``jax.sharding``); only per-scenario
+scalar metrics come back, so memory grows with the chunk, not with N x horizon. Each
+chunk's metrics are written atomically to ``chunks/chunk_NNNNNN.npz``; a resumed run skips
+the chunks already on disk. ``summary.json`` is computed from the chunk files at the end.
+
+Across hosts, start the same command on every host after ``jax.distributed.initialize()``
+(see the README); the scenario axis is then sharded over all global devices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+from typing import Any, Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from jaxflex import beam, fileio
+from jaxflex.controllers import Controller, DFSParams, OpenLoopParams, combine, dfs, open_loop
+from jaxflex.controllers.fuzzy import fuzzy, fuzzy_params
+from jaxflex.plant import discretize, make_plant
+from jaxflex.rollout import RunMetrics, rollout
+from jaxflex.scenarios import Scenario, ScenarioSpec, sample_scenarios, scenario_plant
+
+CONTROLLERS = ("open_loop", "dfs", "fuzzy", "dfs+fuzzy")
+METRICS = {
+    "settling_time_s": "settling time of the tip deflection (s; 2 % of its peak, around 0)",
+    "peak_tip_deflection_m": "peak |tip deflection| (m)",
+    "tip_ise": "integral of tip deflection^2 (m^2 s)",
+    "control_effort": "integral of torque^2 (N^2 m^2 s)",
+    "final_hub_angle_rad": "hub angle at the end of the horizon (rad)",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class MCConfig:
+    """A Monte Carlo run.
+
+    Attributes:
+      controller: one of CONTROLLERS.
+      params: controller parameters by name (k, tau_s, k1, k2, k3); missing names take the
+        paper's values.
+      n_scenarios: N >= 1.
+      chunk: scenarios per chunk (>= 1; rounded up to a multiple of the device count).
+      seed: PRNG seed.
+      percentiles: reported percentiles, each in [0, 100].
+      scenarios: the scenario distribution (default 3 s, as the paper).
+      n_modes, method, capacity: plant modes, "rk4"/"zoh", DFS buffer capacity (samples).
+      band_scenarios: scenarios of chunk 0 whose tip deflection feeds the percentile-band plot.
+    """
+
+    controller: str = "dfs+fuzzy"
+    params: dict = dataclasses.field(default_factory=dict)
+    n_scenarios: int = 10_000
+    chunk: int = 4096
+    seed: int = 0
+    percentiles: Sequence[float] = (5.0, 50.0, 95.0)
+    scenarios: ScenarioSpec = ScenarioSpec(horizon_s=3.0)
+    n_modes: int = 2
+    method: str = "rk4"
+    capacity: int = 64
+    band_scenarios: int = 256
+
+    def __post_init__(self) -> None:
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
+        for name in ("n_scenarios", "chunk", "n_modes", "capacity", "band_scenarios"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1; got {v!r}")
+        if not self.percentiles or any(not (isinstance(p, (int, float)) and 0 <= p <= 100) for p in self.percentiles):
+            raise ValueError(f"percentiles must be numbers in [0, 100]; got {list(self.percentiles)}")
+        if self.method not in ("rk4", "zoh"):
+            raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
+
+    def fingerprint(self) -> str:
+        d = dataclasses.asdict(self)
+        d.pop("n_scenarios")  # more scenarios may be asked of a resumed run
+        d["percentiles"] = list(d["percentiles"])
+        d["dtype"] = str(jnp.zeros(()).dtype)
+        return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def controller_and_params(name: str, params: dict, dt: float, capacity: int) -> tuple[Controller, Any]:
+    """The controller ``name`` and its parameters (paper values for missing names)."""
+    dfs_part = (dfs(dt, capacity, interpolation="linear"), DFSParams(float(params.get("k", 55.0)), float(params.get("tau_s", 0.005))))
+    fuzzy_part = (fuzzy(), fuzzy_params(float(params.get("k1", 1.02)), float(params.get("k2", 0.30)), float(params.get("k3", 1.0))))
+    if name == "open_loop":
+        return open_loop(), OpenLoopParams()
+    if name == "dfs":
+        return dfs_part
+    if name == "fuzzy":
+        return fuzzy_part
+    return combine(dfs_part[0], fuzzy_part[0]), (dfs_part[1], fuzzy_part[1])
+
+
+def _metrics_row(m: RunMetrics) -> dict[str, jax.Array]:
+    return {
+        "settling_time_s": m.settling_time_s,
+        "peak_tip_deflection_m": m.peak_tip_m,
+        "tip_ise": m.tip_ise,
+        "control_effort": m.control_effort,
+        "final_hub_angle_rad": m.final_hub_angle_rad,
+        "diverged": m.diverged,
+    }
+
+
+class _Runner:
+    """Jitted, sharded chunk evaluation for one configuration."""
+
+    def __init__(self, config: MCConfig):
+        self.config = config
+        spec = config.scenarios
+        self.beam = beam.BeamParams()
+        self.controller, self.params = controller_and_params(config.controller, config.params, spec.dt, config.capacity)
+        self.controller.check(self.params)
+        self.nominal = discretize(make_plant(self.beam, config.n_modes), spec.dt, config.method)
+        devices = jax.devices()
+        self.n_devices = len(devices)
+        self.chunk = int(math.ceil(config.chunk / self.n_devices) * self.n_devices)
+        self.sharding = NamedSharding(Mesh(np.array(devices), ("scenarios",)), PartitionSpec("scenarios"))
+        self.key = jax.random.key(config.seed)
+
+        def one(scenario: Scenario) -> dict[str, jax.Array]:
+            plant = self.nominal if scenario.plant is None else scenario_plant(self.beam, config.n_modes, spec.dt, config.method, scenario)
+            return _metrics_row(rollout(plant, self.controller, self.params, scenario, output="metrics"))
+
+        self.evaluate = jax.jit(jax.vmap(one))
+
+    def sample(self, index: int) -> Scenario:
+        spec = self.config.scenarios if index == 0 else dataclasses.replace(self.config.scenarios, include_paper=False)
+        return sample_scenarios(spec, jax.random.fold_in(self.key, index), self.chunk, self.config.n_modes)
+
+    def run_chunk(self, index: int) -> dict[str, np.ndarray]:
+        batch = jax.device_put(self.sample(index), self.sharding)
+        return {k: np.asarray(v) for k, v in self.evaluate(batch).items()}
+
+
+def _chunk_path(out_dir: str, index: int) -> str:
+    return os.path.join(out_dir, "chunks", f"chunk_{index:06d}.npz")
+
+
+def _statistics(values: np.ndarray, percentiles: Sequence[float]) -> dict[str, Any]:
+    finite = values[np.isfinite(values)]
+    stats: dict[str, Any] = {"count": int(finite.size), "nonfinite": int(values.size - finite.size)}
+    if finite.size == 0:
+        return {**stats, "mean": None, "std": None, "min": None, "max": None, **{f"p{p:g}": None for p in percentiles}}
+    stats.update(mean=float(finite.mean()), std=float(finite.std()), min=float(finite.min()), max=float(finite.max()))
+    for p, v in zip(percentiles, np.percentile(finite, list(percentiles))):
+        stats[f"p{p:g}"] = float(v)
+    return stats
+
+
+def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Statistics per metric over the non-diverged runs, and the diverged fraction.
+
+    Non-finite values (a settling time of +inf: still outside the band at the end) are
+    counted in ``nonfinite`` and left out of the statistics.
+    """
+    diverged = columns["diverged"].astype(bool)
+    ok = ~diverged
+    return {
+        "n_scenarios": int(diverged.size),
+        "diverged_fraction": float(diverged.mean()),
+        "controller": config.controller,
+        "params": dict(config.params),
+        "metrics": {name: _statistics(columns[name][ok].astype(np.float64), config.percentiles) for name in METRICS},
+        "metric_definitions": METRICS,
+        "percentiles": list(config.percentiles),
+        "scenarios": dataclasses.asdict(config.scenarios),
+        "seed": config.seed,
+    }
+
+
+def run_montecarlo(
+    config: MCConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, figures: bool = True, on_chunk: Callable[[int], None] | None = None
+) -> dict[str, Any]:
+    """Run (or resume) the Monte Carlo; writes chunk files, summary.json and (optionally) figures.
+
+    Raises:
+      ValueError: bad configuration, or a resume into a folder made by another configuration.
+    """
+    out_dir = os.fspath(out_dir)
+    os.makedirs(os.path.join(out_dir, "chunks"), exist_ok=True)
+    runner = _Runner(config)
+    meta_path = os.path.join(out_dir, "montecarlo.json")
+    meta = {"fingerprint": config.fingerprint(), "chunk": runner.chunk}
+    if os.path.exists(meta_path):
+        with open(meta_path, encoding="utf-8") as f:
+            previous = json.load(f)
+        if not resume:
+            raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume to continue it, or choose another --out")
+        if previous != meta:
+            raise ValueError(f"--resume: {out_dir} was written by another configuration or device count ({previous} != {meta})")
+    fileio.write_json(meta_path, meta)
+
+    n_chunks = int(math.ceil(config.n_scenarios / runner.chunk))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=config.n_scenarios, desc=f"montecarlo {config.controller}", unit="scenario")
+    columns: dict[str, list[np.ndarray]] = {}
+    try:
+        for index in range(n_chunks):
+            path = _chunk_path(out_dir, index)
+            if os.path.exists(path):
+                with np.load(path) as data:
+                    rows = {k: data[k] for k in data.files}
+            else:
+                rows = runner.run_chunk(index)
+
+                def write(tmp: str, rows=rows) -> None:
+                    with open(tmp, "wb") as f:
+                        np.savez(f, **rows)
+
+                fileio.atomic_write(path, write)
+            keep = min(runner.chunk, config.n_scenarios - index * runner.chunk)
+            for k, v in rows.items():
+                columns.setdefault(k, []).append(v[:keep])
+            if bar is not None:
+                bar.update(keep)
+            if on_chunk is not None:
+                on_chunk(index)
+    finally:
+        if bar is not None:
+            bar.close()
+    merged = {k: np.concatenate(v) for k, v in columns.items()}
+    summary = summarize(config, merged)
+    summary["devices"] = runner.n_devices
+    summary["chunk"] = runner.chunk
+    summary["figures"] = _figures(runner, merged, out_dir) if figures else []
+    fileio.write_json(os.path.join(out_dir, "summary.json"), summary)
+    return summary
+
+
+def tip_bands(runner: _Runner, percentiles: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Percentiles over ``band_scenarios`` scenarios of chunk 0 of the tip deflection at each time."""
+    config = runner.config
+    count = min(config.band_scenarios, runner.chunk)
+    batch = jax.tree.map(lambda a: a[:count], runner.sample(0))
+    spec = config.scenarios
+
+    def one(scenario: Scenario) -> jax.Array:
+        plant = runner.nominal if scenario.plant is None else scenario_plant(runner.beam, config.n_modes, spec.dt, config.method, scenario)
+        return rollout(plant, runner.controller, runner.params, scenario).z[:, 1]
+
+    tips = np.asarray(jax.jit(jax.vmap(one))(batch))  # [count, T]
+    t = np.arange(tips.shape[1]) * spec.dt
+    return t, np.nanpercentile(tips, list(percentiles), axis=0)
+
+
+def _figures(runner: _Runner, columns: dict[str, np.ndarray], out_dir: str) -> list[str]:
+    from jaxflex import plotting
+
+    ok = ~columns["diverged"].astype(bool)
+    data = {name: columns[name][ok] for name in METRICS}
+    plotting.save(plotting.histograms(data, METRICS, f"{runner.config.controller}: {int(ok.sum())} of {ok.size} runs (diverged left out)"), os.path.join(out_dir, "histograms.png"))
+    percentiles = sorted(set(runner.config.percentiles) | {50.0})
+    t, bands = tip_bands(runner, percentiles)
+    plotting.save(plotting.percentile_bands(t, bands, percentiles, "Tip deflection (m)", f"{runner.config.controller}: tip deflection percentiles over {min(runner.config.band_scenarios, runner.chunk)} scenarios"), os.path.join(out_dir, "tip_bands.png"))
+    return ["histograms.png", "tip_bands.png"]

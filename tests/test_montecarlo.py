@@ -1,0 +1,130 @@
+"""Monte Carlo: statistics against NumPy on the same rollouts, device-count independence,
+resume equals an uninterrupted run, and refusal of impossible descriptions."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import numpy as np
+import pytest
+
+import jaxflex as jf
+from jaxflex.montecarlo import MCConfig, controller_and_params, run_montecarlo
+from jaxflex.scenarios import ScenarioSpec, sample_scenarios
+
+SPEC = ScenarioSpec(horizon_s=0.3, impulse_max_n=0.5, youngs_modulus_rel=0.1, noise_angle_rad=1e-6)
+
+
+def test_summary_matches_direct_rollouts(tmp_path):
+    config = MCConfig(controller="dfs", n_scenarios=50, chunk=32, scenarios=SPEC, percentiles=(10.0, 50.0, 90.0))
+    summary = run_montecarlo(config, tmp_path, progress=False)
+    assert summary["n_scenarios"] == 50
+    # recompute chunk 1 independently: same key derivation, plain loop over scenarios
+    controller, params = controller_and_params("dfs", {}, 1e-3, config.capacity)
+
+    @jax.jit
+    def tip(sc):
+        plant = jf.discretize(jf.make_plant(jf.scenarios.perturbed_params(jf.BeamParams(), sc.plant), 2), 1e-3, "rk4")
+        return jf.rollout(plant, controller, params, sc).z[:, 1]
+
+    peaks = []
+    for index, count in ((0, 32), (1, 18)):
+        spec = SPEC if index == 0 else ScenarioSpec(**{**SPEC.__dict__, "include_paper": False})
+        batch = sample_scenarios(spec, jax.random.fold_in(jax.random.key(0), index), 32)
+        for i in range(count):
+            peaks.append(np.abs(np.asarray(tip(jax.tree.map(lambda a: a[i], batch)))).max())
+    peaks = np.array(peaks)
+    stats = summary["metrics"]["peak_tip_deflection_m"]
+    np.testing.assert_allclose(stats["mean"], peaks.mean(), rtol=1e-10)
+    np.testing.assert_allclose(stats["std"], peaks.std(), rtol=1e-8)
+    np.testing.assert_allclose([stats["p10"], stats["p50"], stats["p90"]], np.percentile(peaks, [10, 50, 90]), rtol=1e-10)
+    assert stats["min"] == pytest.approx(peaks.min()) and stats["max"] == pytest.approx(peaks.max())
+    assert summary["diverged_fraction"] == 0.0
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert set(saved["metrics"]) >= {"settling_time_s", "peak_tip_deflection_m", "tip_ise", "control_effort", "final_hub_angle_rad"}
+    for name in saved["figures"]:
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_diverged_runs_are_counted_not_averaged(tmp_path):
+    config = MCConfig(controller="dfs", params={"k": -400.0}, n_scenarios=8, chunk=8, scenarios=ScenarioSpec(horizon_s=2.0))
+    summary = run_montecarlo(config, tmp_path, progress=False, figures=False)
+    assert summary["diverged_fraction"] == 1.0
+    assert summary["metrics"]["tip_ise"]["count"] == 0 and summary["metrics"]["tip_ise"]["mean"] is None
+
+
+def test_resume_after_interrupt_gives_the_same_summary(tmp_path):
+    config = MCConfig(controller="fuzzy", n_scenarios=70, chunk=16, scenarios=SPEC)
+    full = run_montecarlo(config, tmp_path / "full", progress=False, figures=False)
+
+    def interrupt(index):
+        if index == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_montecarlo(config, tmp_path / "cut", progress=False, figures=False, on_chunk=interrupt)
+    assert sorted(os.listdir(tmp_path / "cut" / "chunks")) == [f"chunk_{i:06d}.npz" for i in range(3)]
+    with pytest.raises(ValueError, match="pass --resume"):
+        run_montecarlo(config, tmp_path / "cut", progress=False)
+    resumed = run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
+    assert resumed["metrics"] == full["metrics"] and resumed["n_scenarios"] == 70
+    with pytest.raises(ValueError, match="another configuration"):
+        run_montecarlo(MCConfig(controller="fuzzy", n_scenarios=70, chunk=16, seed=3, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
+
+
+_SCRIPT = textwrap.dedent(
+    """
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    from jaxflex.montecarlo import MCConfig, run_montecarlo
+    from jaxflex.scenarios import ScenarioSpec
+    spec = ScenarioSpec(horizon_s=0.3, impulse_max_n=0.5, youngs_modulus_rel=0.1, noise_angle_rad=1e-6)
+    s = run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=96, chunk=32, scenarios=spec), sys.argv[1], progress=False, figures=False)
+    print(json.dumps({"devices": s["devices"], "metrics": s["metrics"], "diverged": s["diverged_fraction"]}))
+    """
+)
+
+
+def test_statistics_do_not_depend_on_the_device_count(tmp_path):
+    results = {}
+    for devices in (1, 4):
+        env = {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}", "JAX_PLATFORMS": "cpu"}
+        out = subprocess.run([sys.executable, "-c", _SCRIPT, str(tmp_path / f"d{devices}")], capture_output=True, text=True, env=env, timeout=600)
+        assert out.returncode == 0, out.stderr
+        results[devices] = json.loads(out.stdout.strip().splitlines()[-1])
+    assert results[1]["devices"] == 1 and results[4]["devices"] == 4
+    for name, stats in results[1]["metrics"].items():
+        for key, value in stats.items():
+            other = results[4]["metrics"][name][key]
+            if value is None:
+                assert other is None
+            else:
+                np.testing.assert_allclose(other, value, rtol=1e-12, err_msg=f"{name}.{key}")
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: ScenarioSpec(noise_velocity_rad_s=-0.1), "noise_velocity_rad_s must be >= 0"),
+        (lambda: MCConfig(percentiles=(5.0, 101.0)), r"percentiles must be numbers in \[0, 100\]"),
+        (lambda: MCConfig(n_scenarios=0), "n_scenarios must be an integer >= 1"),
+        (lambda: MCConfig(controller="lqr"), "controller must be one of"),
+        (lambda: ScenarioSpec(horizon_s=float("nan")), "horizon_s must be a finite number"),
+    ],
+)
+def test_impossible_descriptions_are_refused(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_cli_refuses_unknown_config_key(tmp_path, capsys):
+    from jaxflex import cli
+
+    bad = tmp_path / "mc.toml"
+    bad.write_text("scenarioz = 3\n")
+    assert cli.main(["montecarlo", "--config", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert "unknown config key(s) ['scenarioz']" in capsys.readouterr().err
