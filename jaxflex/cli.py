@@ -53,6 +53,7 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument("--resume", action="store_true", help="continue a run in OUT, skipping the chunks already written")
     mc.add_argument("--no-progress", action="store_true", help="no progress bar")
     mc.add_argument("--x64", action="store_true", help="simulate in float64 (default float32)")
+    mc.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() first (multi-host; see the README)")
     return parser
 
 
@@ -130,6 +131,10 @@ def _montecarlo(args: argparse.Namespace) -> int:
     import dataclasses
     import os
 
+    if args.distributed:
+        import jax
+
+        jax.distributed.initialize()
     from jaxflex.montecarlo import MCConfig, run_montecarlo
     from jaxflex.report import load_tuned
     from jaxflex.scenarios import ScenarioSpec

@@ -143,8 +143,17 @@ class _Runner:
         return sample_scenarios(spec, jax.random.fold_in(self.key, index), self.chunk, self.config.n_modes)
 
     def run_chunk(self, index: int) -> dict[str, np.ndarray]:
-        batch = jax.device_put(self.sample(index), self.sharding)
-        return {k: np.asarray(v) for k, v in self.evaluate(batch).items()}
+        batch = self.sample(index)
+        if jax.process_count() == 1:
+            out = self.evaluate(jax.device_put(batch, self.sharding))
+            return {k: np.asarray(v) for k, v in out.items()}
+        # Several hosts (jax.distributed): every process drew the same chunk; each hands over
+        # the shards its devices hold, and the metrics are gathered back on every process.
+        from jax.experimental import multihost_utils
+
+        global_batch = jax.tree.map(lambda a: jax.make_array_from_callback(a.shape, self.sharding, lambda idx, a=np.asarray(a): a[idx]), batch)
+        out = self.evaluate(global_batch)
+        return {k: np.asarray(multihost_utils.process_allgather(v, tiled=True)) for k, v in out.items()}
 
 
 def _chunk_path(out_dir: str, index: int) -> str:
