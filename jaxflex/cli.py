@@ -123,9 +123,6 @@ def _tune(args: argparse.Namespace) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
 
 def _montecarlo(args: argparse.Namespace) -> int:
     import dataclasses
@@ -165,3 +162,6 @@ def _montecarlo(args: argparse.Namespace) -> int:
     print(f"wrote {os.path.join(args.out, 'summary.json')} and figures")
     return 0
 
+
+if __name__ == "__main__":
+    sys.exit(main())
