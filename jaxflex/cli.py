@@ -54,6 +54,9 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument("--no-progress", action="store_true", help="no progress bar")
     mc.add_argument("--x64", action="store_true", help="simulate in float64 (default float32)")
     mc.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() first (multi-host; see the README)")
+    mc.add_argument("--coordinator", default=None, help="with --distributed: coordinator host:port (default: detected, e.g. SLURM or Open MPI)")
+    mc.add_argument("--num-processes", type=_positive_int, default=None, help="with --distributed: number of processes")
+    mc.add_argument("--process-id", type=int, default=None, help="with --distributed: this process's index, 0-based")
     return parser
 
 
@@ -131,7 +134,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     if args.distributed:
         import jax
 
-        jax.distributed.initialize()
+        jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id)
     from jaxflex.montecarlo import MCConfig, run_montecarlo
     from jaxflex.report import load_tuned
     from jaxflex.scenarios import ScenarioSpec
