@@ -42,6 +42,13 @@ def _parser() -> argparse.ArgumentParser:
     tun.add_argument("--no-progress", action="store_true", help="no progress bar")
     tun.add_argument("--x64", action="store_true", help="tune in float64 (default float32)")
 
+    stab = sub.add_parser("stability", help="DFS stability: critical delays, rightmost root, sampled-loop spectral radius, (k, tau) chart")
+    stab.add_argument("--k", type=float, default=55.0, help="DFS gain (N*m/rad; default 55, the paper's)")
+    stab.add_argument("--tau", type=float, default=0.005, help="DFS delay (s), a whole number of samples (default 0.005)")
+    stab.add_argument("--modes", type=_positive_int, default=2, help="number of assumed modes (default 2)")
+    stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
+    stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
+
     mc = sub.add_parser("montecarlo", help="batched Monte Carlo over sampled scenarios: statistics, histograms, percentile bands")
     mc.add_argument("--controller", choices=("open_loop", "dfs", "fuzzy", "dfs+fuzzy"), default=None, help="controller (default dfs+fuzzy)")
     mc.add_argument("--params", default=None, help="tuned.json from `jaxflex tune` (default: the paper's gains)")
@@ -90,6 +97,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _tune(args)
     if args.command == "montecarlo":
         return _montecarlo(args)
+    if args.command == "stability":
+        return _stability(args)
     return 2  # pragma: no cover - argparse enforces the choices
 
 
@@ -163,6 +172,22 @@ def _montecarlo(args: argparse.Namespace) -> int:
     print(f"{summary['n_scenarios']} scenarios on {summary['devices']} device(s): diverged fraction {summary['diverged_fraction']:.4g}")
     print(f"peak tip deflection (m): mean {tip['mean']:.4g}, p5 {tip.get('p5')}, p95 {tip.get('p95')}")
     print(f"wrote {os.path.join(args.out, 'summary.json')} and figures")
+    return 0
+
+
+def _stability(args: argparse.Namespace) -> int:
+    import os
+
+    from jaxflex.stability_report import run
+
+    try:
+        result = run(args.out, k=args.k, tau_s=args.tau, n_modes=args.modes, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+    except (ValueError, OSError) as err:
+        print(f"jaxflex stability: error: {err}", file=sys.stderr)
+        return 2
+    print(f"k = {args.k:g}, tau = {args.tau:g} s, {args.modes} modes: sampled-loop spectral radius {result['spectral_radius']:.6f} "
+          f"({'stable' if result['stable_sampled'] else 'unstable'}), first destabilising delay {result['first_destabilising_delay_s']} s")
+    print(f"wrote {os.path.join(args.out, 'stability.json')} and {os.path.join(args.out, 'stability_chart.png')}")
     return 0
 
 

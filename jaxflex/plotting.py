@@ -175,3 +175,64 @@ def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[flo
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def stability_chart(
+    k: np.ndarray,
+    tau_s: np.ndarray,
+    spectral_radius: np.ndarray,
+    rightmost_real: np.ndarray | None = None,
+    first_delay_s: np.ndarray | None = None,
+    point: tuple[float, float] | None = None,
+    title: str = "DFS stability chart",
+) -> plt.Figure:
+    """Where the DFS loop is stable over a (k, tau) grid.
+
+    Args:
+      k: [n_k] gains (N*m/rad).
+      tau_s: [n_tau] delays (s).
+      spectral_radius: [n_tau, n_k] sampled loop (structural eigenvalue excluded); < 1 stable.
+      rightmost_real: [n_tau, n_k] real part (1/s) of the continuous loop's rightmost
+        non-structural root; < 0 stable. Omitted or all NaN: only the sampled loop is shown.
+      first_delay_s: [n_k] first destabilising delay of the continuous loop (from the
+        crossings), drawn as a line.
+      point: (k, tau_s) operating point to mark (the paper's 55, 0.005).
+      title: figure title.
+    """
+    k, tau_ms = np.asarray(k, float), 1e3 * np.asarray(tau_s, float)
+    radius = np.asarray(spectral_radius, float)
+    sampled = radius < 1
+    have_cont = rightmost_real is not None and np.any(np.isfinite(rightmost_real))
+    fig, ax = plt.subplots(figsize=(7.5, 5.0))
+    if have_cont:
+        cont = np.asarray(rightmost_real, float) < 0
+        cls = 2 * sampled + cont  # 0 neither, 1 continuous only, 2 sampled only, 3 both
+        colors = ["#f4c7c3", "#fce8b2", "#c6dafc", "#b7e1cd"]
+        names = ["unstable (both)", "stable: continuous only", "stable: sampled only", "stable (both)"]
+    else:
+        cls = sampled.astype(int)
+        colors = ["#f4c7c3", "#b7e1cd"]
+        names = ["unstable (sampled)", "stable (sampled)"]
+    cmap = matplotlib.colors.ListedColormap(colors)
+    ax.pcolormesh(k, tau_ms, cls, cmap=cmap, vmin=-0.5, vmax=len(colors) - 0.5, shading="nearest")
+    handles = [matplotlib.patches.Patch(color=c, label=n) for c, n in zip(colors, names) if np.any(cls == names.index(n))]
+    if radius.shape[0] > 1 and radius.shape[1] > 1:
+        ax.contour(k, tau_ms, radius, levels=[1.0], colors="C0", linewidths=1.2)
+        handles.append(matplotlib.lines.Line2D([], [], color="C0", lw=1.2, label="sampled: spectral radius = 1"))
+        if have_cont:
+            ax.contour(k, tau_ms, np.asarray(rightmost_real, float), levels=[0.0], colors="k", linewidths=1.0, linestyles="--")
+            handles.append(matplotlib.lines.Line2D([], [], color="k", lw=1.0, ls="--", label="continuous: rightmost Re = 0"))
+    if first_delay_s is not None:
+        first = 1e3 * np.asarray(first_delay_s, float)
+        ok = np.isfinite(first) & (first <= tau_ms.max())
+        ax.plot(k[ok], first[ok], "o", ms=3, color="C3", label="first destabilising delay (crossings)")
+        handles.append(matplotlib.lines.Line2D([], [], color="C3", marker="o", ms=3, ls="none", label="first destabilising delay (crossings)"))
+    if point is not None:
+        ax.plot([point[0]], [1e3 * point[1]], marker="*", ms=14, color="k", mec="w", ls="none")
+        handles.append(matplotlib.lines.Line2D([], [], color="k", marker="*", ms=10, ls="none", label=f"operating point (k = {point[0]:g}, tau = {1e3 * point[1]:g} ms)"))
+    ax.set_xlabel("Gain k (N*m/rad)")
+    ax.set_ylabel("Delay tau (ms)")
+    ax.set_title(title)
+    ax.legend(handles=handles, fontsize=7, loc="upper right", framealpha=0.9)
+    fig.tight_layout()
+    return fig

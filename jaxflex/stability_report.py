@@ -1,0 +1,176 @@
+"""``jaxflex stability``: the DFS loop's stability at one operating point and over a (k, tau) grid.
+
+``run(out_dir, k, tau_s, n_modes)`` writes ``stability_chart.png`` and, last,
+``stability.json`` (both atomically) and returns the JSON content as a dict. The analysis
+(:mod:`jaxflex.analysis.stability`) runs in float64 whatever the caller's JAX setting
+(a scoped ``jax.enable_x64``): eigenvalues near the unit circle need it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+import jaxflex
+from jaxflex import beam, fileio, plotting
+from jaxflex.analysis import stability as st
+from jaxflex.controllers.base import check_finite_scalar
+from jaxflex.plant import METHODS, discretize, make_plant
+
+CHART_FILE = "stability_chart.png"
+JSON_FILE = "stability.json"
+_MAX_N_TAU = 80  # chart rows at most; longer delay ranges are subsampled (whole samples)
+
+
+def _check_int(name: str, value: Any, lo: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
+        raise ValueError(f"{name} must be an integer >= {lo}; got {value!r}")
+    return int(value)
+
+
+def run(
+    out_dir: str | os.PathLike,
+    k: float = 55.0,
+    tau_s: float = 0.005,
+    n_modes: int = 2,
+    *,
+    dt: float = 1e-3,
+    method: str = "zoh",
+    k_range: tuple[float, float] | None = None,
+    tau_max_s: float | None = None,
+    n_k: int = 41,
+    n_tau: int | None = None,
+    n_cheb: int = st.DEFAULT_N_CHEB,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Stability of DFS ``u = -k (theta(t) - theta(t - tau))`` on the n-mode arm.
+
+    Args:
+      out_dir: output folder (created).
+      k: DFS gain (N*m/rad), finite.
+      tau_s: delay (s), > 0 and a whole number of samples of dt.
+      n_modes: assumed modes, integer >= 1.
+      dt: sample time of the sampled loop (s), > 0.
+      method: discretisation of the sampled loop, ``"zoh"`` (default: exact for the held
+        torque) or ``"rk4"`` (the paper's integrator); the other is reported alongside.
+      k_range: (k_lo, k_hi) of the chart; default ``[0, 3 k]`` (``[3 k, 0]`` for k < 0,
+        ``[0, 150]`` for k = 0).
+      tau_max_s: largest delay of the chart (s); default ``max(8 tau, 40 ms, 20 dt)``.
+      n_k: chart columns (>= 2).
+      n_tau: chart rows (>= 2); default every sample up to tau_max_s, at most 80.
+      n_cheb: Chebyshev intervals of the continuous-loop generator (>= 2).
+      progress: called with a short message before each stage.
+
+    Returns:
+      The content of ``stability.json``.
+    """
+    say = progress or (lambda msg: None)
+    k = st.check_gain(k)
+    n_modes = beam.check_n_modes(n_modes)
+    dt = check_finite_scalar("dt", dt, positive=True)
+    d = st.delay_steps_of(tau_s, dt)
+    tau = float(tau_s)
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    n_k = _check_int("n_k", n_k, 2)
+    n_cheb = _check_int("n_cheb", n_cheb, 2)
+    if k_range is None:
+        k_range = (0.0, 3 * k) if k > 0 else ((3 * k, 0.0) if k < 0 else (0.0, 150.0))
+    k_lo, k_hi = (check_finite_scalar("k_range", v) for v in k_range)
+    if not k_lo < k_hi:
+        raise ValueError(f"k_range must be (k_lo, k_hi) with k_lo < k_hi; got {k_range}")
+    tau_max = max(8 * tau, 0.04, 20 * dt) if tau_max_s is None else check_finite_scalar("tau_max_s", tau_max_s, positive=True)
+    d_max = int(math.floor(tau_max / dt + 1e-9))
+    if d_max < 2:
+        raise ValueError(f"tau_max_s must cover at least 2 samples of dt = {dt:g} s; got {tau_max:g} s")
+    n_tau = min(d_max, _MAX_N_TAU) if n_tau is None else min(_check_int("n_tau", n_tau, 2), d_max)
+    delay_grid = np.unique(np.round(np.linspace(1, d_max, n_tau)).astype(np.int64))
+    k_grid = np.linspace(k_lo, k_hi, n_k)
+
+    with jax.enable_x64(True):
+        plant = make_plant(n_modes=n_modes)
+        other = "rk4" if method == "zoh" else "zoh"
+        dplant, dplant_other = discretize(plant, dt, method), discretize(plant, dt, other)
+
+        say("critical delays")
+        crit = st.critical_delays(plant, k, max(tau_max, 2 * tau))
+        first = st.first_destabilising_delay(k, plant=plant, tau_max_s=max(1.0, 2 * tau_max))
+
+        say("rightmost root (Chebyshev collocation of the generator)")
+        root = complex(st.rightmost_root(plant, k, tau, n_cheb))
+        root_fine = complex(st.rightmost_root(plant, k, tau, 2 * n_cheb))
+        validation = None
+        if math.isfinite(first):
+            below, above = (complex(st.rightmost_root(plant, k, first * f, 2 * n_cheb)) for f in (0.99, 1.01))
+            validation = {"tau_below_s": 0.99 * first, "rightmost_real_below": below.real, "tau_above_s": 1.01 * first, "rightmost_real_above": above.real}
+
+        say("sampled loop")
+        radius = float(st.spectral_radius(dplant, k, d))
+        radius_other = float(st.spectral_radius(dplant_other, k, d))
+        v = st.structural_directions(dplant)
+        mat = np.asarray(st.sampled_loop_matrix(dplant, k, d))
+        r_vec = np.concatenate([v, np.ones((d, 1)) * (np.asarray(dplant.C[:1]) @ v)])
+        struct_residual = float(np.max(np.abs(mat @ r_vec - r_vec))) if v.shape[1] else None
+
+        say(f"stability chart ({delay_grid.size} delays x {n_k} gains)")
+        chart = st.stability_chart(plant, k_grid, delay_grid, dt, method, n_cheb)
+
+    fig = plotting.stability_chart(
+        chart.k, chart.tau_s, chart.spectral_radius, chart.rightmost_real, chart.first_destabilising_delay_s, point=(k, tau),
+        title=f"DFS stability, {n_modes}-mode arm, sampled at {dt * 1e3:g} ms ({method})",
+    )
+    plotting.save(fig, os.path.join(out_dir, CHART_FILE))
+
+    result = {
+        "k": k,
+        "tau_s": tau,
+        "delay_steps": d,
+        "n_modes": n_modes,
+        "dt": dt,
+        "method": method,
+        "crossings": [
+            {"freq_hz": c.freq_hz, "omega_rad_s": c.omega, "beta_rad": c.beta, "tau_s": c.tau_s, "re_dsdtau": c.re_dsdtau, "direction": c.direction}
+            for c in crit.crossings
+        ],
+        "crossings_tau_max_s": crit.tau_max_s,
+        "zero_crossing": None if crit.zero_crossing is None else crit.zero_crossing._asdict(),
+        "first_destabilising_delay_s": first,
+        "first_destabilising_validation": validation,
+        "spectral_radius": radius,
+        f"spectral_radius_{other}": radius_other,
+        "stable_sampled": radius < 1,
+        "rightmost_root": {
+            "real": root.real,
+            "imag": root.imag,
+            "freq_hz": abs(root.imag) / (2 * math.pi),
+            "n_cheb": n_cheb,
+            "change_at_2x_n_cheb": abs(root_fine - root),
+        },
+        "stable_continuous": root.real < 0,
+        "exp_dt_rightmost_real": math.exp(dt * root.real),
+        "excluded_structural": {
+            **crit.structural,
+            "directions": st.structural_directions(plant).T,
+            "continuous": "root s = 0 of Delta(s, tau) (eigenvector: constant history of a structural direction), deflated",
+            "sampled": "eigenvalue z = 1 of the sampled loop (eigenvector [v, c v, ..., c v]), deflated",
+            "sampled_eigvec_residual": struct_residual,
+        },
+        "chart": {
+            "file": CHART_FILE,
+            "k_range": [float(k_grid[0]), float(k_grid[-1])],
+            "n_k": int(k_grid.size),
+            "tau_range_s": [float(chart.tau_s[0]), float(chart.tau_s[-1])],
+            "n_tau": int(chart.tau_s.size),
+            "stable_fraction_sampled": float(np.mean(chart.spectral_radius < 1)),
+            "stable_fraction_continuous": float(np.mean(chart.rightmost_real < 0)),
+        },
+        "jaxflex_version": getattr(jaxflex, "__version__", None),
+        "jax_version": jax.__version__,
+    }
+    result = fileio.to_jsonable(result)
+    fileio.write_json(os.path.join(out_dir, JSON_FILE), result)
+    return result

@@ -1,0 +1,345 @@
+"""DFS stability analysis: critical delays, the generator's rightmost root, the sampled loop,
+the (k, tau) chart and ``jaxflex.stability_report``, each against an independent oracle
+(direct determinants, jaxflex's own rollout, the other two methods)."""
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+
+from jaxflex import plotting, stability_report
+from jaxflex.analysis import stability as st
+from jaxflex.controllers import DFSParams, dfs
+from jaxflex.plant import discretize, make_plant
+from jaxflex.rollout import rollout
+from jaxflex.scenarios import initial_condition
+
+RTOL_DELTA = 1e-9  # |Delta(jw, tau_m)| / |P(jw)|: crossings polished to ~1e-15 relative; det itself ~1e-14
+RTOL_POLY = 1e-9  # P, Q from eigenvalues / transmission zeros against LU determinants (~1e-14 seen)
+RTOL_STEP = 1e-12  # one sample of the augmented matrix against one rollout step: same float64 products
+RTOL_DEFLATE = 1e-9  # deflated spectrum against the full one (eigenvalue conditioning, 46 x 46)
+SMALL_EIG = 0.05  # well above eps^(1/5) ~ 7e-4, well below every other eigenvalue modulus (> 0.5)
+RTOL_GRAD = 1e-6  # jax.grad of the spectral radius against a central difference (h = 1e-4 N*m/rad)
+SIM_MARGIN = 2e-3  # |radius - 1| of the points classified by simulation: >= 20x growth/decay over a window
+SIM_WINDOW = 1500  # samples per window of the growth test
+SIM_FLOOR = 1e-9  # decayed to round-off: the settled hub angle (structural mode) leaks ~1e-13 into q through Ad's rounding
+TAU_MARGIN = 0.02  # chart points within 2 % of a critical delay are not compared (marginal)
+SAMPLED_RATE_RTOL = 0.02  # log(radius)/dt against Re(rightmost root) at dt = 0.1 ms (O(dt) discretisation error)
+PAPER_K, PAPER_TAU = 55.0, 0.005
+
+
+@pytest.fixture(scope="module")
+def plant():
+    return make_plant(n_modes=2)
+
+
+@pytest.fixture(scope="module")
+def crit(plant):
+    return {k: st.critical_delays(plant, k, 0.04) for k in (20.0, PAPER_K, 120.0, -55.0)}
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. P, Q and the critical delays
+
+
+def test_p_plus_q_is_open_loop_and_delta_is_affine_in_z(plant):
+    rng = np.random.default_rng(0)
+    s = rng.normal(scale=150.0, size=8) + 1j * rng.normal(scale=300.0, size=8)
+    A, b, c = st.loop_vectors(plant)
+    for k in (PAPER_K, -20.0, 200.0):
+        polys = st.characteristic_polynomials(plant, k)
+        p_val, q_val = np.polyval(polys.P, s), np.polyval(polys.Q, s)
+        det_open = np.linalg.det(s[:, None, None] * np.eye(6) - A)
+        det_closed = np.linalg.det(s[:, None, None] * np.eye(6) - A + k * np.outer(b, c))
+        np.testing.assert_allclose(np.polyval(polys.P + polys.Q, s), det_open, rtol=RTOL_POLY)  # z = 1
+        np.testing.assert_allclose(p_val, det_closed, rtol=RTOL_POLY)  # z = 0
+        for tau in (0.005, 0.0123):
+            z = np.exp(-s * tau)
+            direct = st.delta(plant, k, tau, s)
+            scale = np.abs(p_val) + np.abs(q_val * z)
+            assert np.all(np.abs(direct - (p_val + q_val * z)) <= RTOL_POLY * scale)
+
+
+def test_each_critical_delay_zeroes_delta(plant, crit):
+    n_checked = 0
+    for k, result in crit.items():
+        polys = st.characteristic_polynomials(plant, k)
+        assert len(result.crossings) >= 3
+        for cr in result.crossings:
+            s = 1j * cr.omega
+            p_val = abs(np.polyval(polys.P, s))
+            assert abs(abs(np.polyval(polys.Q, s)) - p_val) <= RTOL_DELTA * p_val  # |P| = |Q|
+            for tau in cr.tau_s:
+                assert abs(st.delta(plant, k, tau, s)) <= RTOL_DELTA * p_val, (k, cr.freq_hz, tau)
+                n_checked += 1
+            # tau_m are beta / w + 2 pi m / w
+            np.testing.assert_allclose(np.diff(cr.tau_s), 2 * np.pi / cr.omega, rtol=1e-12)
+    assert n_checked >= 8
+
+
+def test_direction_signs_agree_with_cooke_and_with_the_roots(plant, crit):
+    """Re ds/dtau (implicit function theorem) has the sign of F'(w) at every tau_m, and the
+    root near jw really moves to that side: checked with the generator's roots at tau_m +- 1 %."""
+    for k, result in crit.items():
+        for cr in result.crossings:
+            assert cr.direction == ("destabilising" if cr.dF_dw > 0 else "stabilising")
+            assert np.all(np.sign(cr.re_dsdtau) == np.sign(cr.dF_dw))
+            for tau in cr.tau_s[:1]:
+                for factor, side in ((0.99, -1), (1.01, 1)):
+                    roots = np.asarray(st.characteristic_roots(plant, k, tau * factor))
+                    near = roots[np.argmin(np.abs(roots - 1j * cr.omega))]
+                    assert abs(near.imag - cr.omega) < 0.02 * cr.omega
+                    assert np.sign(near.real) == side * np.sign(cr.re_dsdtau[0]), (k, cr.freq_hz, factor, near)
+
+
+def test_first_destabilising_delay_is_where_the_rightmost_root_crosses(plant):
+    first = st.first_destabilising_delay(PAPER_K, 2)
+    assert 0.005 < first < 0.01  # the paper's 5 ms is inside the stable range
+    for k in (20.0, PAPER_K, 120.0):
+        tau = st.first_destabilising_delay(k, 2, plant=plant)
+        below = complex(st.rightmost_root(plant, k, 0.99 * tau))
+        above = complex(st.rightmost_root(plant, k, 1.01 * tau))
+        assert below.real < 0 < above.real, (k, tau, below, above)
+        omega = [cr.omega for cr in st.critical_delays(plant, k, 2 * tau).crossings if np.any(np.isclose(cr.tau_s, tau, rtol=1e-12))]
+        assert abs(above.imag - omega[0]) < 0.01 * omega[0]
+
+
+def test_continuous_chart_matches_the_stability_switches(plant):
+    """Where the rightmost root is in the left half plane is where the crossings count 0 roots
+    in the right half plane (stability switches, including re-stabilisation at small k)."""
+    k_values = np.linspace(2.0, 150.0, 12)
+    tau = np.arange(1, 41) * 1e-3
+    real = np.asarray(st.rightmost_real_grid(plant, k_values, tau))
+    compared = 0
+    for j, k in enumerate(k_values):
+        result = st.critical_delays(plant, k, 0.05)
+        crit_taus = np.concatenate([cr.tau_s for cr in result.crossings] + [np.zeros(0)])
+        count = st.unstable_root_count(result, tau)
+        away = np.all(np.abs(tau[:, None] - crit_taus[None, :]) > TAU_MARGIN * tau[:, None], axis=1)
+        np.testing.assert_array_equal((real[:, j] < 0)[away], (count == 0)[away], err_msg=f"k = {k}")
+        compared += int(away.sum())
+    assert compared > 400
+
+
+def test_wrong_sign_gain_has_a_real_crossing_through_zero(plant, crit):
+    """k < 0: the rigid-body root passes through s = 0 at tau_0 = -a'(0) / (k N(0)); the
+    deflation keeps that second root at 0 (a tolerance around 0 would drop it)."""
+    result = crit[-55.0]
+    zero = result.zero_crossing
+    polys = st.characteristic_polynomials(plant, -55.0)
+    assert zero is not None and zero.direction == "destabilising"
+    np.testing.assert_allclose(zero.tau_s, -polys.a[-2] / (-55.0 * polys.N[-1]), rtol=1e-14)
+    for factor, sign in ((0.9, -1), (1.1, 1)):
+        roots = np.asarray(st.characteristic_roots(plant, -55.0, zero.tau_s * factor))
+        real = roots[np.abs(roots.imag) < 1e-9]
+        assert np.sign(real[np.argmin(np.abs(real))].real) == sign
+    roots = np.asarray(st.characteristic_roots(plant, -55.0, zero.tau_s))
+    assert np.min(np.abs(roots)) < 1e-6
+    assert crit[PAPER_K].zero_crossing is None  # k > 0: the root at 0 stays simple
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. Rightmost root of the delay equation
+
+
+@pytest.mark.parametrize("k, tau", [(PAPER_K, 0.03), (120.0, 0.02), (20.0, 0.04)])
+def test_rightmost_root_converges_with_chebyshev_points(plant, k, tau):
+    roots = [complex(st.rightmost_root(plant, k, tau, m)) for m in (8, 12, 16, 24, 32)]
+    diffs = np.abs(np.diff(roots))
+    floor = 1e-9 * abs(roots[-1])  # round-off level of the eigenvalues
+    for prev, nxt in zip(diffs[:-1], diffs[1:]):
+        assert nxt < 0.2 * prev or nxt < floor, diffs  # geometric (spectral) convergence
+    assert diffs[-1] < floor
+    assert roots[-1].imag > 0 and roots[-1].real > 0  # of the unstable pair, the Im > 0 root
+
+
+def test_sampled_rate_approaches_the_continuous_rightmost_root(plant):
+    """log(radius)/dt -> Re(rightmost root) as dt -> 0 (ZOH and sampling add O(dt))."""
+    for k, tau in ((PAPER_K, 0.005), (120.0, 0.004)):
+        real = complex(st.rightmost_root(plant, k, tau)).real
+        assert real < 0
+        errors = []
+        for dt in (1e-3, 2.5e-4, 1e-4):
+            radius = float(st.spectral_radius(discretize(plant, dt, "zoh"), k, st.delay_steps_of(tau, dt)))
+            errors.append(abs(math.log(radius) / dt - real))
+        assert all(b < a for a, b in zip(errors[:-1], errors[1:])), errors
+        assert errors[-1] < SAMPLED_RATE_RTOL * abs(real)
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. The sampled loop
+
+
+@pytest.mark.parametrize("method, d", [("zoh", 5), ("rk4", 3), ("zoh", 1)])
+def test_sampled_matrix_reproduces_the_rollout(plant, method, d):
+    dt = 1e-3
+    dplant = discretize(plant, dt, method)
+    x0 = jax.random.normal(jax.random.key(0), (6,)) * jnp.asarray([1e-2, 1e-3, 1e-4, 1e-1, 1e-2, 1e-3])
+    steps = 200
+    traj = rollout(dplant, dfs(dt, capacity=8), DFSParams(PAPER_K, d * dt), initial_condition(x0, steps))
+    x = np.asarray(traj.x)
+    theta = x[:, 0]
+    hist = np.stack([theta[np.maximum(t - np.arange(1, d + 1), 0)] for t in range(steps)])
+    xi = np.concatenate([x, hist], axis=1)  # [T, n_x + d]: [x_k, theta_{k-1}..theta_{k-d}], theta_{<0} = theta_0
+    mat = np.asarray(st.sampled_loop_matrix(dplant, PAPER_K, d))
+    pred = xi[:-1] @ mat.T
+    np.testing.assert_allclose(pred, xi[1:], rtol=RTOL_STEP, atol=RTOL_STEP * np.abs(xi).max())
+    u = -PAPER_K * (theta - hist[:, -1])
+    np.testing.assert_allclose(np.asarray(traj.u)[:, 0], u, rtol=RTOL_STEP, atol=RTOL_STEP * np.abs(u).max())
+    # and propagated from xi_0 = [x0, theta0 ... theta0] over the whole horizon
+    prop = [xi[0]]
+    for _ in range(steps - 1):
+        prop.append(mat @ prop[-1])
+    np.testing.assert_allclose(np.asarray(prop), xi, rtol=0, atol=1e-10 * np.abs(xi).max())
+
+
+@pytest.mark.parametrize("k", [0.0, 1e-3, PAPER_K, -55.0])
+def test_deflation_removes_exactly_the_structural_eigenvalue(plant, k):
+    dplant = discretize(plant, 1e-3, "zoh")
+    d = 5
+    mat = np.asarray(st.sampled_loop_matrix(dplant, k, d))
+    v = st.structural_directions(dplant)
+    r = np.concatenate([v, np.ones((d, 1)) * (np.asarray(dplant.C[:1]) @ v)])
+    assert np.max(np.abs(mat @ r - r)) < 1e-13  # [v, c v, ..., c v] is an eigenvector for eigenvalue 1 at every k
+    full = np.linalg.eigvals(mat)
+    deflated = np.asarray(st.sampled_eigenvalues(dplant, k, d))
+    i_one = np.argmin(np.abs(full - 1))
+    rest = np.delete(full, i_one)
+    assert deflated.shape == rest.shape
+    # At k = 0 the history is a nilpotent Jordan block of size d: its computed eigenvalues
+    # scatter by ~eps^(1/d) around 0 in both computations, so only |lambda| > SMALL_EIG are matched.
+    big = deflated[np.abs(deflated) > SMALL_EIG]
+    assert big.shape[0] == np.sum(np.abs(rest) > SMALL_EIG)
+    for lam in big:  # multiset equality up to eigenvalue conditioning
+        j = np.argmin(np.abs(rest - lam))
+        assert abs(rest[j] - lam) < RTOL_DEFLATE
+        rest = np.delete(rest, j)
+    if k == 0.0:  # open loop: the largest non-structural |exp(lambda dt)| of the plant
+        lam = np.linalg.eigvals(np.asarray(plant.A))
+        lam = lam[np.argsort(np.abs(lam))][1:]
+        np.testing.assert_allclose(float(st.spectral_radius(dplant, k, d)), np.max(np.abs(np.exp(lam * 1e-3))), rtol=1e-12)
+
+
+def test_spectral_radius_jit_vmap_grad(plant):
+    dplant = discretize(plant, 1e-3, "zoh")
+    ks = jnp.asarray([10.0, PAPER_K, 90.0])
+    eager = np.asarray([float(st.spectral_radius(dplant, k, 5)) for k in ks])
+    radius = jax.jit(jax.vmap(lambda k: st.spectral_radius(dplant, k, 5)))
+    np.testing.assert_allclose(np.asarray(radius(ks)), eager, rtol=1e-12)
+    grid = np.asarray(st.sampled_radius_grid(dplant, np.asarray(ks), np.asarray([2, 5, 9])))
+    np.testing.assert_allclose(grid[1], eager, rtol=1e-12)  # padded history, traced delay
+    np.testing.assert_allclose(grid[2, 1], float(st.spectral_radius(dplant, PAPER_K, 9)), rtol=1e-12)
+    g = float(jax.grad(lambda k: st.spectral_radius(dplant, k, 5))(PAPER_K))
+    h = 1e-4
+    plus, minus = np.asarray(radius(jnp.asarray([PAPER_K + h, PAPER_K - h, PAPER_K])))[:2]
+    fd = (plus - minus) / (2 * h)
+    assert g != 0.0 and math.isfinite(g)
+    np.testing.assert_allclose(g, fd, rtol=RTOL_GRAD)
+
+
+def test_chart_agrees_with_simulation(plant):
+    """Points near the sampled stability boundary (|radius - 1| in [2e-3, 5e-2]), both sides:
+    the jaxflex rollout (ZOH plant, dfs controller) grows from one late window to the next
+    exactly where the radius exceeds 1. theta is left out: its constant (structural) part
+    neither grows nor decays."""
+    dt = 1e-3
+    k_values = np.linspace(5.0, 150.0, 12)
+    delays = np.arange(1, 41)
+    chart = st.stability_chart(plant, k_values, delays, dt, "zoh", continuous=False)
+    radius = chart.spectral_radius
+    near = (np.abs(radius - 1) >= SIM_MARGIN) & (np.abs(radius - 1) <= 5e-2)
+    i_tau, i_k = np.nonzero(near)
+    assert np.sum(radius[near] < 1) >= 20 and np.sum(radius[near] > 1) >= 20
+    dplant = discretize(plant, dt, "zoh")
+    controller = dfs(dt, capacity=int(delays.max()))
+    x0 = jnp.asarray([1e-2, 1e-3, 1e-4, 1e-1, 1e-2, 1e-3])
+    scenario = initial_condition(x0, 4 * SIM_WINDOW)
+
+    @jax.jit
+    @jax.vmap
+    def growth(k, tau):
+        flex = rollout(dplant, controller, DFSParams(k, tau), scenario).x[:, 1:]
+        late = jnp.max(jnp.abs(flex[-SIM_WINDOW:]))
+        prev = jnp.max(jnp.abs(flex[-2 * SIM_WINDOW : -SIM_WINDOW]))
+        return late / prev, late / jnp.max(jnp.abs(flex))
+
+    ratio, level = (np.asarray(a) for a in growth(jnp.asarray(k_values[i_k]), jnp.asarray(chart.tau_s[i_tau])))
+    at_floor = level < SIM_FLOOR
+    growing = (ratio > 1) & ~at_floor
+    np.testing.assert_array_equal(growing, radius[near] > 1)
+    assert not np.any(at_floor & (radius[near] > 1))
+    # the growth per window follows the radius (loose: transients of the other eigenvalues)
+    ok = ~at_floor
+    np.testing.assert_allclose(np.log(ratio[ok]), SIM_WINDOW * np.log(radius[near][ok]), rtol=0.3)
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. Validation, plot and report
+
+
+def test_validation_errors(plant):
+    dplant = discretize(plant, 1e-3, "zoh")
+    for bad in (math.nan, math.inf):
+        with pytest.raises(ValueError, match="k must be finite"):
+            st.critical_delays(plant, bad)
+        with pytest.raises(ValueError, match="k must be finite"):
+            st.spectral_radius(dplant, bad, 5)
+        with pytest.raises(ValueError, match="k must be finite"):
+            stability_report.run("/nonexistent-not-written", k=bad)
+    for bad in (0.0, -0.005, math.nan):
+        with pytest.raises(ValueError, match="tau_s must be finite and > 0"):
+            st.rightmost_root(plant, PAPER_K, bad)
+        with pytest.raises(ValueError, match="tau_s must be finite and > 0"):
+            stability_report.run("/nonexistent-not-written", tau_s=bad)
+    with pytest.raises(ValueError, match="tau_s must be a whole number"):
+        st.delay_steps_of(0.0055, 1e-3)
+    with pytest.raises(ValueError, match="tau_s must be a whole number"):
+        stability_report.run("/nonexistent-not-written", tau_s=0.0055)
+    with pytest.raises(ValueError, match="must be an integer >= 1"):
+        st.spectral_radius(dplant, PAPER_K, 0)
+    with pytest.raises(ValueError, match="delay_steps must be an integer >= 1"):
+        st.sampled_loop_matrix(dplant, PAPER_K, 2.5)
+    for bad in (0, -1, 1.5):
+        with pytest.raises(ValueError, match="n_modes must be an integer >= 1"):
+            st.first_destabilising_delay(PAPER_K, bad)
+        with pytest.raises(ValueError, match="n_modes must be an integer >= 1"):
+            stability_report.run("/nonexistent-not-written", n_modes=bad)
+    with pytest.raises(ValueError, match="n_cheb must be an integer >= 2"):
+        st.rightmost_root(plant, PAPER_K, 0.005, 1)
+
+
+def test_plot_stability_chart():
+    k = np.linspace(0, 100, 5)
+    tau = np.arange(1, 5) * 1e-3
+    radius = 0.9 + 0.05 * np.add.outer(np.arange(4), np.arange(5)) / 2
+    fig = plotting.stability_chart(k, tau, radius, radius - 1.05, np.full(5, 0.003), point=(55.0, 0.005))
+    assert len(fig.axes) == 1
+    plt.close(fig)
+    fig = plotting.stability_chart(k, tau, radius)
+    plt.close(fig)
+    assert not plt.get_fignums()
+
+
+def test_report_writes_chart_and_json(tmp_path):
+    result = stability_report.run(tmp_path, n_k=6, tau_max_s=0.012, n_cheb=24)
+    assert (tmp_path / "stability_chart.png").stat().st_size > 1000
+    on_disk = json.loads((tmp_path / "stability.json").read_text())
+    assert on_disk == result
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp-")]
+    assert result["k"] == PAPER_K and result["tau_s"] == PAPER_TAU and result["n_modes"] == 2 and result["dt"] == 1e-3
+    for cr in result["crossings"]:
+        assert set(cr) >= {"freq_hz", "tau_s", "direction"} and cr["direction"] in ("destabilising", "stabilising")
+    first = st.first_destabilising_delay(PAPER_K, 2)
+    np.testing.assert_allclose(result["first_destabilising_delay_s"], first, rtol=1e-12)
+    assert any(first in cr["tau_s"] for cr in result["crossings"])
+    dplant = discretize(make_plant(n_modes=2), 1e-3, "zoh")
+    np.testing.assert_allclose(result["spectral_radius"], float(st.spectral_radius(dplant, PAPER_K, 5)), rtol=1e-12)
+    assert result["stable_sampled"] and result["stable_continuous"]
+    assert result["rightmost_root"]["real"] < 0 and result["rightmost_root"]["change_at_2x_n_cheb"] < 1e-8
+    v = result["first_destabilising_validation"]
+    assert v["rightmost_real_below"] < 0 < v["rightmost_real_above"]
+    assert result["excluded_structural"]["multiplicity"] == 1
