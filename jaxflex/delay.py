@@ -5,9 +5,31 @@ last ``capacity + 1`` samples. Each step pushes the current sample, then reads t
 ``d`` steps back, ``0 <= d <= capacity``. Before t = 0 the history equals the first sample
 (the paper's convention for the DFS controller).
 
-Reads take a delay in samples that may be traced: ``"nearest"`` rounds it to a whole
-number of samples; ``"linear"`` interpolates between the two neighbouring samples, so the
-read is differentiable in the delay and exact at whole samples.
+Reads take a delay ``d`` in samples that may be traced; the capacity is static, so a new
+delay never recompiles. State: ``capacity + 1`` samples and the write index, whatever the
+mode. Every mode is exact at whole samples; they differ between them:
+
+* ``"nearest"`` rounds ``d`` to a whole number of samples: one gather per step. The delay
+  is quantised to ``dt``; the read is piecewise constant in ``d`` (zero gradient).
+* ``"linear"`` interpolates between the two neighbouring samples: two gathers and three
+  flops per step. Error ``O(dt^2)``: at most ``dt^2 max|y''| / 8`` for a smooth signal; a
+  sinusoid with ``w dt = 0.1`` read halfway between samples loses 1.2e-3 of its amplitude.
+  The read is continuous and piecewise linear in ``d``, with kinks at whole samples.
+* ``"cubic"``: 4-point Lagrange interpolation on the samples ``floor(d) - 1 .. floor(d) + 2``
+  back (two neighbours each side): four gathers and about 40 flops per step. Error
+  ``O(dt^4)``: at most ``(3 / 128) dt^4 max|y''''|`` between the two middle nodes; the same
+  sinusoid loses 2.3e-6 of its amplitude. The read reproduces cubic polynomials in time
+  exactly, is continuous in ``d``, and its derivative in ``d`` jumps at whole samples,
+  where the stencil shifts by one (as the linear read's does). There gradients are
+  one-sided: JAX returns the derivative from above (``floor(d)`` picks the stencil of
+  ``[d, d + 1)``), except at ``d = capacity`` where only the one from below exists.
+
+  Near the ends the stencil is clamped into the buffer, keeping four nodes: for ``d < 1``
+  it is the samples 0..3 back, for ``d > capacity - 1`` the samples ``capacity - 3 ..
+  capacity`` back. It stays exact for cubics and at whole samples, only off-centre (error
+  constant 1 / 24 instead of 3 / 128 in those outermost intervals). A buffer of capacity 1
+  or 2 has only 2 or 3 samples: the read is then Lagrange on all of them (linear,
+  quadratic).
 """
 
 from __future__ import annotations
@@ -18,7 +40,8 @@ import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-INTERPOLATIONS = ("nearest", "linear")
+INTERPOLATIONS = ("nearest", "linear", "cubic")
+_CUBIC_POINTS = 4  # nodes of the Lagrange stencil
 
 
 class DelayState(NamedTuple):
@@ -64,7 +87,7 @@ def delay_read(state: DelayState, delay_steps: ArrayLike, interpolation: str = "
       state: the delay line after the current sample was pushed.
       delay_steps: delay in samples, in [0, capacity]; may be traced. Values outside are
         clipped to that range (check them where they are concrete: ``DFS.check``).
-      interpolation: ``"nearest"`` or ``"linear"`` (see the module docstring).
+      interpolation: ``"nearest"``, ``"linear"`` or ``"cubic"`` (see the module docstring).
     """
     size = state.buffer.shape[0]
     d = jnp.clip(jnp.asarray(delay_steps, state.buffer.dtype), 0, size - 1)
@@ -78,6 +101,19 @@ def delay_read(state: DelayState, delay_steps: ArrayLike, interpolation: str = "
         i0 = (newest - whole.astype(jnp.int32)) % size
         i1 = (i0 - 1) % size
         return (1 - frac) * state.buffer[i0] + frac * state.buffer[i1]
+    if interpolation == "cubic":
+        n_pts = min(_CUBIC_POINTS, size)  # static: a tiny buffer has fewer samples
+        start = jnp.clip(jnp.floor(d) - 1, 0, size - n_pts)  # first node, clamped into the buffer
+        t = d - start  # position in the stencil, in [0, n_pts - 1]; carries the gradient
+        weights = []
+        for i in range(n_pts):  # Lagrange basis on nodes 0..n_pts-1: exactly 0 or 1 at integer t
+            w = jnp.ones_like(t)
+            for j in range(n_pts):
+                if j != i:
+                    w = w * (t - j) / (i - j)
+            weights.append(w)
+        index = (newest - start.astype(jnp.int32) - jnp.arange(n_pts, dtype=jnp.int32)) % size
+        return jnp.stack(weights) @ state.buffer[index]
     raise NotImplementedError(f"interpolation must be one of {INTERPOLATIONS}; got {interpolation!r}")
 
 

@@ -47,3 +47,138 @@ def test_bad_arguments():
         delay.delay_init(jnp.zeros((2, 2)), 3)
     with pytest.raises(NotImplementedError, match="interpolation must be one of"):
         delay.delay_read(delay.delay_init(jnp.zeros(1), 3), 1, "sinc")
+
+
+# --- cubic (4-point Lagrange) reads -------------------------------------------------------
+
+RTOL_ROUND = 1e-12  # a few float64 round-offs on O(1..1e3) sample values
+RTOL_QUARTIC = 1e-9  # an O(1) error read off as the difference of two O(1e6) values
+
+
+def _filled(ys, capacity):
+    """The delay line after pushing every row of ``ys`` (more rows than slots: it wraps)."""
+    state = delay.delay_init(ys[0], capacity)
+    for y in ys:
+        state = delay.delay_push(state, y)
+    return state
+
+
+def _lagrange_reference(history, d, capacity):
+    """Independent reference: scipy's Lagrange polynomial through the documented stencil.
+
+    ``history[j]`` is the sample ``j`` steps back. Nodes floor(d) - 1 .. floor(d) + 2, shifted
+    into 0..capacity at the ends (four nodes whenever capacity >= 3).
+    """
+    from scipy.interpolate import BarycentricInterpolator
+
+    n_pts = min(4, capacity + 1)
+    start = int(np.clip(np.floor(d) - 1, 0, capacity + 1 - n_pts))
+    nodes = np.arange(start, start + n_pts, dtype=float)
+    return BarycentricInterpolator(nodes, history[start : start + n_pts])(d)
+
+
+def test_cubic_read_is_exact_at_whole_samples_including_the_clamped_ends():
+    rng = np.random.default_rng(1)
+    ys = jnp.asarray(rng.normal(size=(23, 2)))
+    capacity = 7
+    state = _filled(ys, capacity)
+    for d in range(capacity + 1):
+        np.testing.assert_array_equal(np.asarray(delay.delay_read(state, float(d), "cubic")), np.asarray(ys[-1 - d]))
+
+
+@pytest.mark.parametrize("d", [1.25, 2.5, 3.999, 5.75])
+def test_cubic_read_reproduces_cubic_polynomials_between_samples(d):
+    """y(n) = cubic in the sample index n: the 4-point Lagrange read is exact (the Lagrange
+    property). Interior delays 1 <= d <= capacity - 1 (centred stencil)."""
+    n = np.arange(30.0)
+    ys = 0.3 * n**3 - 2.0 * n**2 + 5.0 * n - 7.0
+    state = _filled(jnp.asarray(ys)[:, None], 7)
+    n_read = n[-1] - d  # the sample index being read, between samples
+    expected = 0.3 * n_read**3 - 2.0 * n_read**2 + 5.0 * n_read - 7.0
+    np.testing.assert_allclose(float(delay.delay_read(state, d, "cubic")[0]), expected, rtol=RTOL_ROUND)
+
+
+@pytest.mark.parametrize("d", [0.3, 0.9, 6.2, 6.9])
+def test_cubic_read_at_the_ends_is_still_exact_for_cubics_and_off_centre(d):
+    """In the outermost intervals the stencil is shifted into the buffer: still four nodes,
+    so cubics stay exact; for the quartic n^4 (fourth derivative / 4! = 1) the error
+    ``f - p`` is exactly the node polynomial ``prod (d - node)`` of the shifted stencil,
+    which pins the stencil."""
+    capacity = 7
+    n = np.arange(30.0)
+    state3 = _filled(jnp.asarray(n**3)[:, None], capacity)
+    n_read = n[-1] - d
+    np.testing.assert_allclose(float(delay.delay_read(state3, d, "cubic")[0]), n_read**3, rtol=RTOL_ROUND)
+    state4 = _filled(jnp.asarray(n**4)[:, None], capacity)
+    start = 0 if d < 1 else capacity - 3
+    node_poly = np.prod([d - (start + i) for i in range(4)])  # in units of delay samples
+    np.testing.assert_allclose(n_read**4 - float(delay.delay_read(state4, d, "cubic")[0]), node_poly, rtol=RTOL_QUARTIC)
+
+
+def test_cubic_read_through_scan_matches_independent_lagrange():
+    """Random data through the ring buffer (it wraps several times) against scipy's
+    barycentric Lagrange interpolation on the documented stencil, delays all over [0, cap]."""
+    rng = np.random.default_rng(2)
+    capacity = 6
+    ys = rng.normal(size=(40, 3))
+    delays = rng.uniform(0, capacity, size=40)
+    delays[:4] = [0.0, capacity, 0.5, capacity - 0.5]
+
+    def body(state, inputs):
+        y, d = inputs
+        return delay.delay_step(state, y, d, "cubic")
+
+    _, got = jax.lax.scan(body, delay.delay_init(ys[0], capacity), (jnp.asarray(ys), jnp.asarray(delays)))
+    padded = np.concatenate([np.repeat(ys[:1], capacity, axis=0), ys])  # history before t = 0 = ys[0]
+    for i in range(len(ys)):
+        history = padded[i + capacity :: -1][: capacity + 1]  # history[j]: j steps back
+        expected = _lagrange_reference(history, delays[i], capacity)
+        np.testing.assert_allclose(np.asarray(got[i]), expected, rtol=RTOL_ROUND, atol=RTOL_ROUND)
+
+
+@pytest.mark.parametrize("capacity", [1, 2])
+def test_cubic_read_in_tiny_buffers_uses_every_sample(capacity):
+    """Capacity 1 (2 samples) reads linearly, capacity 2 (3 samples) quadratically."""
+    n = np.arange(10.0)
+    ys = n**capacity  # degree = number of samples - 1: reproduced exactly
+    state = _filled(jnp.asarray(ys)[:, None], capacity)
+    for d in np.linspace(0, capacity, 7):
+        np.testing.assert_allclose(float(delay.delay_read(state, d, "cubic")[0]), (n[-1] - d) ** capacity, rtol=RTOL_ROUND)
+
+
+def test_cubic_read_gradient_in_the_delay():
+    """Between samples: the derivative of the Lagrange polynomial. At a whole sample: the
+    derivative from above (JAX's floor picks the stencil of [d, d + 1)), which differs from
+    the one from below (the read is only C0 there)."""
+    rng = np.random.default_rng(3)
+    ys = jnp.asarray(rng.normal(size=(20, 1)))
+    capacity = 8
+    state = _filled(ys, capacity)
+    history = np.asarray(ys[::-1, 0])[: capacity + 1]
+
+    def read(d):
+        return delay.delay_read(state, d, "cubic")[0]
+
+    def lagrange_slope(d, start):
+        nodes = np.arange(start, start + 4, dtype=float)
+        poly = np.polyfit(nodes, history[start : start + 4], 3)  # exact fit: 4 points, degree 3
+        return np.polyval(np.polyder(poly), d)
+
+    np.testing.assert_allclose(float(jax.grad(read)(3.4)), lagrange_slope(3.4, 2), rtol=1e-10)
+    g_whole = float(jax.grad(read)(4.0))
+    np.testing.assert_allclose(g_whole, lagrange_slope(4.0, 3), rtol=1e-10)  # from above: nodes 3..6
+    assert abs(lagrange_slope(4.0, 2) - g_whole) > 1e-3 * abs(g_whole)  # from below: nodes 2..5, a kink
+
+
+def test_changing_the_delay_does_not_retrace_a_cubic_read():
+    traces = [0]
+    state = _filled(jnp.asarray(np.arange(12.0))[:, None], 6)
+
+    @jax.jit
+    def read(d):
+        traces[0] += 1  # runs only while tracing
+        return delay.delay_read(state, d, "cubic")
+
+    for d in (0.2, 2.5, 5.9, 6.0):
+        read(jnp.asarray(d))
+    assert traces[0] == 1
