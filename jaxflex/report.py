@@ -216,13 +216,16 @@ def load_tuned(path: str | os.PathLike) -> tuple[str, Any, Any, dict[str, float]
     named = data.get("params") if isinstance(data, dict) else None
     if name not in TUNED_CONTROLLERS or not isinstance(named, dict):
         raise ValueError(f"--params: {path} must hold 'controller' (one of {TUNED_CONTROLLERS}) and 'params'")
-    capacity = int(data.get("config", {}).get("capacity", 64))
+    config = data.get("config", {}) if isinstance(data.get("config"), dict) else {}
+    capacity = int(config.get("capacity", 64))
+    delay_kind = config.get("delay", "linear")
+    dfs_controller = dfs(DT, capacity, approximation="pade", pade_order=int(config.get("pade_order", 8))) if delay_kind == "pade" else dfs(DT, capacity, interpolation=delay_kind)
     needed = {"dfs": ("k", "tau_s"), "fuzzy": ("k1", "k2", "k3"), "dfs+fuzzy": ("k", "tau_s", "k1", "k2", "k3")}[name]
     missing = [n for n in needed if not isinstance(named.get(n), (int, float))]
     if missing:
         raise ValueError(f"--params: {path} lacks numeric parameter(s) {missing} for {name}")
-    dfs_part = (dfs(DT, capacity, interpolation="linear"), DFSParams(float(named["k"]), float(named["tau_s"]))) if "k" in needed else None
-    fuzzy_part = (fuzzy(), fuzzy_params(float(named["k1"]), float(named["k2"]), float(named["k3"]))) if "k1" in needed else None
+    dfs_part = (dfs_controller, DFSParams(float(named["k"]), float(named["tau_s"]))) if "k" in needed else None
+    fuzzy_part = (fuzzy(temperature=float(config.get("fuzzy_temperature", 0.0))), fuzzy_params(float(named["k1"]), float(named["k2"]), float(named["k3"]))) if "k1" in needed else None
     if name == "dfs":
         controller, params = dfs_part
     elif name == "fuzzy":

@@ -14,7 +14,6 @@ from jaxflex.scenarios import ScenarioSpec, sample_scenarios
 from tests.helpers import tree_allclose
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
-from tuning.transforms import tuned_controller
 from tuning.tuner import CHECKPOINT, Problem, TuneConfig, summarize, tune
 
 RTOL_FD = 1e-5  # central differences, float64
@@ -133,6 +132,10 @@ def test_bad_input_is_refused(tmp_path):
         Problem(TuneConfig(controller="dfs", initial={"tau_s": 0.1}, **SMALL))
     with pytest.raises(ValueError, match="controller must be one of"):
         TuneConfig(controller="lqr")
+    with pytest.raises(ValueError, match="delay must be one of"):
+        TuneConfig(delay="sinc")
+    with pytest.raises(ValueError, match="fuzzy_temperature must be a finite number >= 0"):
+        TuneConfig(fuzzy_temperature=-0.1)
     with pytest.raises(ValueError, match=r"unknown config key\(s\) \['stepz'\]"):
         TuneConfig.from_mapping({"stepz": 3})
     with pytest.raises(ValueError, match=r"unknown scenario key\(s\) \['noise'\]"):

@@ -17,6 +17,8 @@ from jaxflex.controllers import Controller, DFSParams, combine, dfs
 from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy, fuzzy_params
 
 CONTROLLERS = ("dfs", "fuzzy", "dfs+fuzzy")
+DELAYS = ("linear", "cubic", "pade")
+"""How a tuned DFS reads theta(t - tau): buffer interpolation ("linear", "cubic") or Pade states."""
 
 
 class TunedController(NamedTuple):
@@ -57,7 +59,13 @@ def check_tau(tau_s: float, dt: float, capacity: int) -> None:
         raise ValueError(f"tau_s must be in [{lo:g}, {hi:g}] s (one sample to the delay buffer capacity of {capacity} samples); got {tau_s}")
 
 
-def _dfs_parts(dt: float, capacity: int):
+def _dfs_controller(dt: float, capacity: int, delay: str, pade_order: int) -> Controller:
+    if delay == "pade":
+        return dfs(dt, capacity, approximation="pade", pade_order=pade_order)
+    return dfs(dt, capacity, interpolation=delay)
+
+
+def _dfs_parts(dt: float, capacity: int, delay: str, pade_order: int):
     lo, hi = tau_bounds(dt, capacity)
 
     def to_physical(raw):
@@ -74,10 +82,10 @@ def _dfs_parts(dt: float, capacity: int):
 
     named = lambda p: {"k": float(np.asarray(p.k)), "tau_s": float(np.asarray(p.tau_s))}
     from_named = lambda d: DFSParams(float(d.get("k", 55.0)), float(d.get("tau_s", 0.005)))
-    return dfs(dt, capacity, interpolation="linear"), to_physical, to_raw, named, from_named, DFSParams(55.0, 0.005)
+    return _dfs_controller(dt, capacity, delay, pade_order), to_physical, to_raw, named, from_named, DFSParams(55.0, 0.005)
 
 
-def _fuzzy_parts():
+def _fuzzy_parts(temperature: float):
     def to_physical(raw):
         base = fuzzy_params()
         dtype = raw["log_k1"].dtype
@@ -97,17 +105,28 @@ def _fuzzy_parts():
 
     named = lambda p: {name: float(np.asarray(getattr(p, name))) for name in ("k1", "k2", "k3")}
     from_named = lambda d: fuzzy_params(float(d.get("k1", 1.02)), float(d.get("k2", 0.30)), float(d.get("k3", 1.0)))
-    return fuzzy(), to_physical, to_raw, named, from_named, fuzzy_params(1.02, 0.30, 1.0)
+    return fuzzy(temperature=temperature), to_physical, to_raw, named, from_named, fuzzy_params(1.02, 0.30, 1.0)
 
 
-def tuned_controller(name: str, dt: float = 1e-3, capacity: int = 64) -> TunedController:
-    """The controller ``name`` (one of CONTROLLERS) with its parameter transforms."""
+def tuned_controller(name: str, dt: float = 1e-3, capacity: int = 64, delay: str = "linear", pade_order: int = 8, temperature: float = 0.0) -> TunedController:
+    """The controller ``name`` (one of CONTROLLERS) with its parameter transforms.
+
+    Args:
+      name: one of CONTROLLERS.
+      dt: sample time (s).
+      capacity: delay-buffer capacity (samples); tau is tuned in [dt, capacity dt].
+      delay: how DFS reads the delayed angle (one of DELAYS); all are differentiable in tau.
+      pade_order: Pade order with ``delay="pade"``.
+      temperature: fuzzy smoothing temperature (0 = the faithful controller).
+    """
+    if delay not in DELAYS:
+        raise ValueError(f"delay must be one of {DELAYS}; got {delay!r}")
     if name == "dfs":
-        return TunedController(name, *_dfs_parts(dt, capacity))
+        return TunedController(name, *_dfs_parts(dt, capacity, delay, pade_order))
     if name == "fuzzy":
-        return TunedController(name, *_fuzzy_parts())
+        return TunedController(name, *_fuzzy_parts(temperature))
     if name == "dfs+fuzzy":
-        d, f = _dfs_parts(dt, capacity), _fuzzy_parts()
+        d, f = _dfs_parts(dt, capacity, delay, pade_order), _fuzzy_parts(temperature)
         return TunedController(
             name,
             combine(d[0], f[0]),

@@ -28,7 +28,7 @@ from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, sample_scenarios, scenario_plant
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
-from tuning.transforms import CONTROLLERS, TunedController, tuned_controller
+from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_controller
 
 CHECKPOINT = "checkpoint.npz"
 
@@ -51,6 +51,11 @@ class TuneConfig:
       n_modes: assumed modes of the plant (>= 1).
       method: "rk4" or "zoh".
       capacity: delay buffer capacity in samples; tau is tuned in [dt, capacity dt].
+      delay: how DFS reads theta(t - tau): "linear" or "cubic" buffer interpolation, or
+        "pade" states (tuning.transforms.DELAYS). The stability penalty always uses the
+        linear-interpolation loop matrix (exact for "linear", an approximation otherwise).
+      pade_order: Pade order with delay = "pade" (>= 1).
+      fuzzy_temperature: smoothing temperature of the fuzzy controller (0 = faithful).
       initial: starting physical parameters by name (k, tau_s, k1, k2, k3); missing names
         take the paper's values.
       scenarios: the scenario distribution.
@@ -70,6 +75,9 @@ class TuneConfig:
     n_modes: int = 2
     method: str = "rk4"
     capacity: int = 32
+    delay: str = "linear"
+    pade_order: int = 8
+    fuzzy_temperature: float = 0.0
     initial: Mapping[str, float] = dataclasses.field(default_factory=dict)
     scenarios: ScenarioSpec = ScenarioSpec()
     objective: ObjectiveSpec = ObjectiveSpec()
@@ -77,7 +85,7 @@ class TuneConfig:
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
-        for name in ("n_scenarios", "n_heldout", "steps", "eval_every", "patience", "checkpoint_every", "n_modes", "capacity"):
+        for name in ("n_scenarios", "n_heldout", "steps", "eval_every", "patience", "checkpoint_every", "n_modes", "capacity", "pade_order"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1; got {v!r}")
@@ -89,6 +97,11 @@ class TuneConfig:
                 raise ValueError(f"{name} must be a finite number > 0; got {v!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise ValueError(f"seed must be an integer; got {self.seed!r}")
+        if self.delay not in DELAYS:
+            raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
+        t = self.fuzzy_temperature
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not (math.isfinite(t) and t >= 0):
+            raise ValueError(f"fuzzy_temperature must be a finite number >= 0; got {t!r}")
         if self.method not in ("rk4", "zoh"):
             raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
         allowed = {"dfs": {"k", "tau_s"}, "fuzzy": {"k1", "k2", "k3"}}
@@ -132,7 +145,7 @@ class Problem:
         self.config = config
         spec = config.scenarios
         self.dt = spec.dt
-        self.tc: TunedController = tuned_controller(config.controller, spec.dt, config.capacity)
+        self.tc: TunedController = tuned_controller(config.controller, spec.dt, config.capacity, config.delay, config.pade_order, config.fuzzy_temperature)
         self.beam = beam.BeamParams()
         self.freqs_hz = beam.natural_frequencies_hz(self.beam, config.n_modes)
         key_train, key_val = jax.random.split(jax.random.key(config.seed))
