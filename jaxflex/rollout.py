@@ -58,6 +58,10 @@ class RunMetrics(NamedTuple):
         at sample k, sample k itself is outside the band, so earlier exceedances never matter.
       peak_abs_state: max |x| over all states and samples (NaN if any sample was non-finite).
       diverged: peak_abs_state non-finite or above ``DIVERGENCE_THRESHOLD``.
+      modal_energy: [n_f] energy of the tip deflection at each frequency of
+        ``mode_freqs_hz``: ``|sum_k w_k tip_k exp(-2 pi i f t_k) dt|^2`` with ``w`` the periodic
+        Hann window over the horizon (m^2 s^2); shape (0,) when no frequencies are given.
+        A streaming single-bin DFT, so it needs no stored trajectory.
     """
 
     peak_tip_m: jax.Array
@@ -69,6 +73,7 @@ class RunMetrics(NamedTuple):
     settling_time_s: jax.Array
     peak_abs_state: jax.Array
     diverged: jax.Array
+    modal_energy: jax.Array
 
 
 OUTPUTS = ("trajectory", "metrics")
@@ -87,7 +92,16 @@ def _check_shapes(plant: DiscretePlant, scenario: Scenario) -> None:
         raise ValueError(f"scenario.noise must have shape ({steps}, 2); got {scenario.noise.shape}")
 
 
-def rollout(plant: DiscretePlant, controller: Controller, params: Any, scenario: Scenario, *, output: str = "trajectory", settling_band: float = 0.02) -> Trajectory | RunMetrics:
+def rollout(
+    plant: DiscretePlant,
+    controller: Controller,
+    params: Any,
+    scenario: Scenario,
+    *,
+    output: str = "trajectory",
+    settling_band: float = 0.02,
+    mode_freqs_hz: Any = None,
+) -> Trajectory | RunMetrics:
     """Simulate the closed loop over the scenario's horizon.
 
     Args:
@@ -98,6 +112,7 @@ def rollout(plant: DiscretePlant, controller: Controller, params: Any, scenario:
       output: ``"trajectory"`` (every sample, memory O(T)) or ``"metrics"`` (running
         metrics only, memory O(1) in T).
       settling_band: band of the running settling time, as a fraction of the peak.
+      mode_freqs_hz: [n_f] frequencies (Hz) of ``RunMetrics.modal_energy`` (metrics only).
 
     Returns:
       Trajectory with fields [T, ...], or RunMetrics. A loop that diverges returns
@@ -132,13 +147,16 @@ def rollout(plant: DiscretePlant, controller: Controller, params: Any, scenario:
     dtype = scenario.x0.dtype
     zero = jnp.zeros((), dtype)
     dt = plant.dt.astype(dtype)
+    omega = 2 * jnp.pi * jnp.zeros((0,), dtype) if mode_freqs_hz is None else 2 * jnp.pi * jnp.asarray(mode_freqs_hz, dtype).reshape(-1)
 
     def metrics_body(carry, inputs):
-        x, state, k, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x = carry
+        x, state, k, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x, dft_re, dft_im = carry
         x_next, state, u, _ = loop_step(x, state, *inputs)
         hub, tip = plant.Cz[0] @ x, plant.Cz[1] @ x
         peak = jnp.maximum(peak, jnp.abs(tip))
         last_out = jnp.where(jnp.abs(tip) > settling_band * peak, k, last_out)
+        t_k = k.astype(dtype) * dt
+        windowed = (0.5 - 0.5 * jnp.cos(2 * jnp.pi * k.astype(dtype) / steps)) * tip * dt
         carry = (
             x_next,
             state,
@@ -150,12 +168,14 @@ def rollout(plant: DiscretePlant, controller: Controller, params: Any, scenario:
             ise_h + hub**2 * dt,
             effort + jnp.sum(u**2) * dt,
             jnp.maximum(peak_x, jnp.max(jnp.abs(x))),
+            dft_re + windowed * jnp.cos(omega * t_k),
+            dft_im - windowed * jnp.sin(omega * t_k),
         )
         return carry, None
 
-    carry0 = (scenario.x0, state0, jnp.zeros((), jnp.int32), zero, jnp.full((), -1, jnp.int32), zero, zero, zero, zero, zero)
+    carry0 = (scenario.x0, state0, jnp.zeros((), jnp.int32), zero, jnp.full((), -1, jnp.int32), zero, zero, zero, zero, zero, jnp.zeros_like(omega), jnp.zeros_like(omega))
     final, _ = jax.lax.scan(metrics_body, carry0, (scenario.force, scenario.noise))
-    x_end, _, _, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x = final
+    x_end, _, _, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x, dft_re, dft_im = final
     settling = jnp.where(last_out >= steps - 1, jnp.inf, (last_out + 1).astype(dtype) * dt)
     diverged = ~jnp.isfinite(peak_x) | (peak_x > DIVERGENCE_THRESHOLD)
-    return RunMetrics(peak, ise_t, iae_t, ise_h, effort, x_end[0], settling, peak_x, diverged)
+    return RunMetrics(peak, ise_t, iae_t, ise_h, effort, x_end[0], settling, peak_x, diverged, dft_re**2 + dft_im**2)

@@ -187,8 +187,13 @@ def test_running_metrics_equal_trajectory_metrics(plant2, controller, params):
     force[100:110] = 0.5  # a 10 ms tip-force pulse at t = 0.1 s
     sc = Scenario(paper_scenario(plant2).x0, jnp.asarray(force), jnp.zeros((steps, 2)))
     traj = jf.rollout(plant2, controller, params, sc)
-    m = jf.rollout(plant2, controller, params, sc, output="metrics")
+    freqs = np.array([13.3, 36.5])
+    m = jf.rollout(plant2, controller, params, sc, output="metrics", mode_freqs_hz=freqs)
     tip, hub, dt = np.asarray(traj.z[:, 1]), np.asarray(traj.z[:, 0]), 1e-3
+    t = np.arange(steps) * dt
+    hann = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(steps) / steps)
+    dft = [abs(np.sum(hann * tip * np.exp(-2j * np.pi * f * t)) * dt) ** 2 for f in freqs]
+    np.testing.assert_allclose(np.asarray(m.modal_energy), dft, rtol=1e-9)
     np.testing.assert_allclose(m.peak_tip_m, np.abs(tip).max(), rtol=1e-12)
     np.testing.assert_allclose(m.tip_ise, np.sum(tip**2) * dt, rtol=1e-10)
     np.testing.assert_allclose(m.tip_iae, np.sum(np.abs(tip)) * dt, rtol=1e-10)

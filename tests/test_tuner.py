@@ -36,16 +36,6 @@ def test_reductions_against_numpy():
     assert l.max() - 0.01 * np.log(40) <= smooth <= l.max() + 1e-12
 
 
-def test_modal_energy_against_numpy_dft():
-    dt, steps = 1e-3, 800
-    t = np.arange(steps) * dt
-    tip = np.exp(-2 * t) * np.sin(2 * np.pi * 13.3 * t) + 0.3 * np.sin(2 * np.pi * 36 * t)
-    freqs = np.array([13.3, 36.5])
-    w = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(steps) / steps)
-    expected = sum(abs(np.sum(w * tip * np.exp(-2j * np.pi * f * t)) * dt) ** 2 for f in freqs)
-    assert float(objectives.modal_energy(jnp.asarray(tip), dt, jnp.asarray(freqs))) == pytest.approx(expected, rel=1e-10)
-
-
 def test_dfs_loop_matrix_reproduces_rollout_and_deflation(plant2):
     capacity, tau = 16, 0.0063
     loop = np.asarray(objectives.dfs_loop_matrix(plant2, 55.0, tau, capacity))

@@ -9,7 +9,7 @@ training batch and every term is dimensionless):
 * ``effort``: integral of the squared torque;
 * ``vibration``: energy of the tip deflection near the modal frequencies: the squared
   magnitude of its Hann-windowed Fourier transform at each natural frequency of the nominal
-  model, summed over modes.
+  model, summed over modes (``RunMetrics.modal_energy``, streamed in the rollout).
 
 The batch is combined by its mean, its CVaR (the mean of the worst ``1 - level`` fraction),
 or a smooth worst case ``T logsumexp(l / T) - T log B``.
@@ -71,10 +71,6 @@ class ObjectiveSpec:
         if not (math.isfinite(self.worst_temperature) and self.worst_temperature > 0):
             raise ValueError(f"objective worst_temperature must be finite and > 0; got {self.worst_temperature}")
 
-    @property
-    def needs_trajectory(self) -> bool:
-        return self.vibration > 0
-
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "ObjectiveSpec":
         known = {f.name for f in dataclasses.fields(cls)}
@@ -93,25 +89,9 @@ class Terms(NamedTuple):
     vibration: jax.Array
 
 
-def modal_energy(tip: jax.Array, dt: float, freqs_hz: jax.Array) -> jax.Array:
-    """Sum over modes of |sum_k w_k tip_k exp(-2 pi i f t_k) dt|^2, w a periodic Hann window (m^2 s^2)."""
-    steps = tip.shape[0]
-    t = jnp.arange(steps, dtype=tip.dtype) * dt
-    window = 0.5 - 0.5 * jnp.cos(2 * jnp.pi * jnp.arange(steps, dtype=tip.dtype) / steps)
-    phase = 2 * jnp.pi * freqs_hz[:, None] * t[None, :]  # [n_modes, T]
-    wt = window * tip
-    re = jnp.sum(jnp.cos(phase) * wt[None, :], axis=1) * dt
-    im = jnp.sum(jnp.sin(phase) * wt[None, :], axis=1) * dt
-    return jnp.sum(re**2 + im**2)
-
-
 def terms_from_metrics(m: RunMetrics) -> Terms:
-    return Terms(m.tip_ise, m.hub_ise, m.control_effort, jnp.zeros_like(m.tip_ise))
-
-
-def terms_from_trajectory(traj, dt: float, freqs_hz: jax.Array) -> Terms:
-    tip, hub = traj.z[:, 1], traj.z[:, 0]
-    return Terms(jnp.sum(tip**2) * dt, jnp.sum(hub**2) * dt, jnp.sum(traj.u**2) * dt, modal_energy(tip, dt, freqs_hz))
+    """The terms of one scenario from its running metrics (modal energies summed over modes)."""
+    return Terms(m.tip_ise, m.hub_ise, m.control_effort, jnp.sum(m.modal_energy))
 
 
 def reference_scales(terms: Terms) -> Terms:

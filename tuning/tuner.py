@@ -167,10 +167,8 @@ class Problem:
 
         def one(scenario: Scenario) -> objectives.Terms:
             plant = self.nominal if scenario.plant is None else scenario_plant(self.beam, config.n_modes, self.dt, config.method, scenario)
-            if config.objective.needs_trajectory:
-                traj = rollout(plant, self.tc.controller, params, scenario)
-                return objectives.terms_from_trajectory(traj, self.dt, self.freqs_hz)
-            return objectives.terms_from_metrics(rollout(plant, self.tc.controller, params, scenario, output="metrics"))
+            freqs = self.freqs_hz if config.objective.vibration > 0 else None
+            return objectives.terms_from_metrics(rollout(plant, self.tc.controller, params, scenario, output="metrics", mode_freqs_hz=freqs))
 
         return jax.vmap(one)(batch)
 
