@@ -1,6 +1,9 @@
 """PD-type fuzzy controller: the closed-form Mamdani centroid against scikit-fuzzy and a
 brute-force numeric centroid, odd symmetry, the singleton defuzzifier, the controller under
-jit/vmap, gradients against finite differences, validation and dtype preservation."""
+jit/vmap, gradients against finite differences, validation and dtype preservation; then the
+smooth mode (temperature > 0): convergence to the faithful surface as T -> 0, the T = 0
+program, smoothness across the faithful kinks, gradients at those kinks and through a closed
+loop, ranges, symmetry, NaN-free gradients, float32 and validation."""
 
 import jax
 import jax.numpy as jnp
@@ -367,3 +370,268 @@ def test_float32_preserved(defuzz):
     f = fuzzy_surface(params32, jnp.float32(0.3), jnp.float32(-0.2), defuzz=defuzz)
     assert f.dtype == jnp.float32
     assert isinstance(params32, FuzzyParams)
+
+
+# -- 9. smooth mode (temperature > 0) ----------------------------------------------------------
+
+CONVERGENCE_TEMPERATURES = (0.1, 0.03, 0.01, 0.003, 0.001)
+T_GRAD = 0.02  # a temperature in the recommended range 0.01-0.05, for gradient checks
+# Convergence on the 101 x 101 grid of the square, every point but the faithful surface's
+# jumps (below). Observed max |F_T - F|: 5.75 T, 16.1 T, 29.1 T, 38.6 T, 43.1 T for
+# CONVERGENCE_TEMPERATURES; the constant settles near 45 (45.4 T at T = 1e-4). The error is
+# about T / (what fires): the worst points lie next to the faithful jumps, where the faithful
+# controller fires only 0.04 (e.g. (-1, 0.48)). C_GRID bounds it with ~10 % margin.
+C_GRID = 50.0
+# Where some rule fires with strength >= 0.1 and |e|, |e_dot| <= 0.9 (away from the universe
+# edges, whose smooth clip moves the input by T log 2): observed 1.15-1.54 T.
+C_BULK = 2.0
+W_BULK = 0.1
+# Faithful jumps: grid points whose faithful value changes by more than JUMP_MIN when the
+# input moves by JUMP_PROBE (observed: 0.5-0.75 at the 106 jumps, <= 8e-8 elsewhere). They
+# are points where no rule fires next to points where some do (the edges of the no-rule
+# corners [0.5, 1]^2 and [-1, -0.5]^2, and isolated points such as (-0.5, 1)); no continuous
+# surface converges to a jump uniformly.
+JUMP_PROBE = 1e-9
+JUMP_MIN = 1e-3
+ATOL_NO_RULE = 1e-12  # T = 0.001 where no rule fires: strengths ~ exp(-0.04 / T) vs T^2; observed 2e-15
+# Smoothness: |grad(x + d) - grad(x - d)| <= C_CURVATURE * 2 d / T across a faithful kink
+# (the Hessian is O(1 / T); observed constant 0.6-1.0); the faithful jumps are >= 1.
+KINK_STEP = 1e-7
+C_CURVATURE = 2.0
+FAITHFUL_KINK_JUMP = 1.0
+# Central differences in float64 on a C-infinity loss with curvature ~1/T = 50: truncation
+# ~EPS_FD^2 / T^2 ~ 1e-9, rounding ~1e-16 / EPS_FD = 1e-10, relative to O(1) derivatives.
+EPS_FD = 1e-6
+RTOL_FD_SMOOTH = 1e-6
+ATOL_FD_SMOOTH = 1e-9  # the losses are O(1): relative tolerance dominates
+# float32 against float64 in the smooth mode: rounding of the arguments x / T of softplus and
+# sigmoid is amplified by ~1 / T (observed 9e-6 at T = 0.02 on a grid).
+ATOL_F32_SMOOTH = 5e-5
+
+
+def _surface_fn(params, temperature, **kwargs):
+    """Jitted vectorised surface over flat arrays of (e, e_dot)."""
+    return jax.jit(jax.vmap(lambda e, ed: fuzzy_surface(params, e, ed, temperature=temperature, **kwargs)))
+
+
+def _max_strength_np(e, e_dot):
+    """[...] largest faithful firing strength of the paper's rules (numpy, np.interp triangles)."""
+    feet = _feet(PAPER_CENTRES)
+    mu = {}
+    for var, x in (("a", np.clip(e, -1.0, 1.0)), ("v", np.clip(e_dot, -1.0, 1.0))):
+        for j, name in enumerate(SET_NAMES):
+            mu[var, name] = np.interp(x, feet[j : j + 3], [0.0, 1.0, 0.0])
+    return np.max([np.minimum(mu["a", a], mu["v", v]) for a, v, _ in PAPER_RULES], axis=0)
+
+
+def test_smooth_surface_converges_to_faithful():
+    params = fuzzy_params()
+    grid = np.linspace(-1.0, 1.0, 101)
+    e, ed = (a.ravel() for a in np.meshgrid(grid, grid, indexing="ij"))
+    faithful_fn = _surface_fn(params, 0.0)
+    faithful = np.asarray(faithful_fn(e, ed))
+
+    probes = [(s1, s2) for s1 in (-JUMP_PROBE, 0.0, JUMP_PROBE) for s2 in (-JUMP_PROBE, 0.0, JUMP_PROBE)]
+    moved = np.max([np.abs(np.asarray(faithful_fn(e + s1, ed + s2)) - faithful) for s1, s2 in probes], axis=0)
+    jump = moved > JUMP_MIN
+    strength = _max_strength_np(e, ed)
+    no_rule = strength == 0
+    assert np.all(no_rule[jump])  # the faithful surface jumps only where nothing fires ...
+    assert 50 < np.sum(jump) < 0.02 * e.size  # ... on a small set (106 of the 10201 points)
+    assert np.sum(no_rule & ~jump) > 1000  # the no-rule corners themselves are kept
+    bulk = (strength >= W_BULK) & (np.abs(e) <= 0.9) & (np.abs(ed) <= 0.9)
+
+    errs, bulk_errs = [], []
+    for t in CONVERGENCE_TEMPERATURES:
+        smooth = np.asarray(_surface_fn(params, t)(e, ed))
+        diff = np.abs(smooth - faithful)
+        errs.append(diff[~jump].max())
+        bulk_errs.append(diff[bulk].max())
+        assert errs[-1] <= C_GRID * t, (t, errs[-1] / t)
+        assert bulk_errs[-1] <= C_BULK * t, (t, bulk_errs[-1] / t)
+    assert np.all(np.diff(errs) < 0), errs  # monotone in T
+    # O(T), not slower (sqrt(T), T log(1/T)): from T = 0.003 to 0.001 the bulk error falls by
+    # 3^1.01 (observed), the error over the grid by 3^0.90.
+    assert np.log(bulk_errs[-2] / bulk_errs[-1]) / np.log(3.0) == pytest.approx(1.0, abs=0.1)
+    assert np.log(errs[-2] / errs[-1]) / np.log(3.0) > 0.85
+    # Where no rule fires (off the jumps) the smooth output goes to the faithful 0.
+    assert np.max(np.abs(smooth[no_rule & ~jump])) <= ATOL_NO_RULE
+
+
+SMOOTH_PRIMITIVES = {"exp", "log", "log1p", "logistic"}
+
+
+def _primitive_names(closed_jaxpr):
+    """Names of all primitives in a jaxpr, nested calls included."""
+    names = set()
+
+    def visit(jaxpr):
+        for eqn in jaxpr.eqns:
+            names.add(eqn.primitive.name)
+            for value in eqn.params.values():
+                for sub in value if isinstance(value, (tuple, list)) else (value,):
+                    if hasattr(sub, "jaxpr") and hasattr(sub, "consts"):
+                        visit(sub.jaxpr)
+                    elif hasattr(sub, "eqns"):
+                        visit(sub)
+
+    visit(closed_jaxpr.jaxpr)
+    return names
+
+
+def test_zero_temperature_is_the_faithful_path():
+    """Identical programs (hence bit-identical values and gradients), with no smooth operator."""
+    params = fuzzy_params(k1=1.3, k2=0.7, k3=2.5)
+    y = jnp.array([0.5 / 1.3, 0.3])  # e on the PS centre: a kink
+    step = lambda c: (lambda p, y: c.step(p, (), y)[1][0])  # noqa: E731
+    for transform in (lambda f: f, jax.grad):
+        default = jax.make_jaxpr(transform(step(fuzzy())))(params, y)
+        zero = jax.make_jaxpr(transform(step(fuzzy(temperature=0.0))))(params, y)
+        assert str(zero) == str(default)
+        smooth = jax.make_jaxpr(transform(step(fuzzy(temperature=T_GRAD))))(params, y)
+        assert not SMOOTH_PRIMITIVES & _primitive_names(zero)
+        assert SMOOTH_PRIMITIVES & _primitive_names(smooth)
+    surface = jax.make_jaxpr(lambda e: fuzzy_surface(params, e, -0.2, defuzz="singleton"))(0.3)
+    surface_0 = jax.make_jaxpr(lambda e: fuzzy_surface(params, e, -0.2, defuzz="singleton", temperature=0))(0.3)
+    assert str(surface_0) == str(surface)
+
+
+def test_smooth_gradient_is_continuous_across_faithful_kinks():
+    """Just left and right of a faithful kink the faithful slope jumps by >= 1, the smooth
+    gradient changes by O(step / T)."""
+    params = fuzzy_params()
+    points = np.array(
+        [
+            [0.0, 0.3],  # angle on the ZE centre
+            [0.5, -0.3],  # angle on the PS centre
+            [0.2, -0.5],  # velocity on the NS centre
+            [-0.3, 0.0],  # velocity on the ZE centre
+            [1.0, 0.1],  # angle on the edge of the universe (the input clip)
+        ]
+    )
+    step = KINK_STEP * np.eye(2)[[0, 0, 1, 1, 0]]  # [5, 2] along the kinked coordinate
+    # Faithful: one-sided difference quotients (exact slopes: the surface is smooth on each side).
+    faithful = _surface_fn(params, 0.0)
+    f_left, f_mid, f_right = (np.asarray(faithful(*(points + k * step).T)) for k in (-1, 0, 1))
+    assert np.all(np.abs((f_right - f_mid) - (f_mid - f_left)) / KINK_STEP >= FAITHFUL_KINK_JUMP)
+    grad = jax.jit(jax.vmap(jax.jacfwd(lambda x: fuzzy_surface(params, x[0], x[1], temperature=T_GRAD))))
+    left, right = np.asarray(grad(jnp.asarray(points - step))), np.asarray(grad(jnp.asarray(points + step)))
+    assert np.all(np.max(np.abs(right - left), axis=1) <= C_CURVATURE * 2 * KINK_STEP / T_GRAD)
+
+
+# (theta, theta_dot) with k1 = 2, k2 = 0.5 (exact in binary, so e lands exactly on the kinks):
+_KINK_YS = np.array(
+    [
+        [0.0, 0.6],  # e = 0: ZE centre
+        [0.25, -0.4],  # e = 0.5: PS centre
+        [0.1, -1.0],  # e_dot = -0.5: NS centre
+        [-0.125, 0.0],  # e = -0.25, e_dot = 0: crossing of NS and ZE, ZE centre
+        [0.5, 0.3],  # e = 1: edge of the universe
+        [0.4, 1.8],  # e = 0.8, e_dot = 0.9: no rule fires
+        [0.25, 1.5],  # e = 0.5, e_dot = 0.75: a jump of the faithful surface
+    ]
+)
+
+
+def test_smooth_gradients_against_finite_differences():
+    """check_grads on the surface summed over the kink points above and random inputs, plus a
+    60-step closed-loop rollout (jaxflex plant, 2 modes, 1 ms) from a 0.3 rad hub angle."""
+    import jaxflex as jf
+    from jaxflex.scenarios import initial_condition
+
+    params = fuzzy_params(k1=2.0, k2=0.5, k3=1.5)._replace(
+        torque_centres=jnp.array([-1.0, -0.45, 0.02, 0.55, 1.0])  # uneven: no symmetric cancellation
+    )
+    assert np.all(np.asarray(params.k1) * _KINK_YS[[0, 1, 4], 0] == [0.0, 0.5, 1.0])
+    random_ys = jax.random.uniform(jax.random.key(0), (16, 2), minval=-0.6, maxval=0.6)
+    ys = jnp.concatenate([jnp.asarray(_KINK_YS), random_ys])
+    controller = fuzzy(temperature=T_GRAD)
+    plant = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")
+    scenario = initial_condition(jnp.array([0.3, 1e-3, 0.0, 0.0, 0.0, 0.0]), 60)
+
+    def surface_loss(p):
+        u = jax.vmap(lambda y: controller.step(p, (), y)[1])(ys)
+        return jnp.sum(u) + jnp.sum(u**2)
+
+    def closed_loop_loss(p):
+        traj = jf.rollout(plant, controller, p, scenario)
+        return jnp.mean((traj.y[:, 0] / 0.3) ** 2) + jnp.mean(traj.u[:, 0] ** 2)  # O(1)
+
+    loss = jax.jit(lambda p: (surface_loss(p), closed_loop_loss(p)))
+    check_grads(
+        loss, (params,), order=1, modes=["fwd", "rev"], eps=EPS_FD, atol=ATOL_FD_SMOOTH, rtol=RTOL_FD_SMOOTH
+    )
+    # Every parameter matters (forward mode, one leaf at a time; the jvp is compiled once).
+    zeros = jax.tree.map(jnp.zeros_like, params)
+    for name in FuzzyParams._fields:
+        tangent = zeros._replace(**{name: jnp.ones_like(getattr(params, name))})
+        _, derivs = jax.jvp(loss, (params,), (tangent,))
+        assert all(np.isfinite(float(d)) and abs(float(d)) > 1e-4 for d in derivs), (name, derivs)
+
+
+def test_smooth_ranges_and_symmetry():
+    uneven = jnp.array([-1.3, -0.4, 0.1, 0.35, 1.2])
+    centre_sets = jnp.stack([jnp.asarray(PAPER_CENTRES), uneven])
+    x = jnp.linspace(-2.0, 2.0, 401)
+    grid = np.linspace(-1.3, 1.3, 41)  # past the universe; both no-rule corners
+    e, ed = (jnp.asarray(a.ravel()) for a in np.meshgrid(grid, grid, indexing="ij"))
+    params = fuzzy_params()
+    t = 0.1  # smaller T: test_smooth_gradients_finite_everywhere_and_dtype
+    mu = jax.vmap(jax.vmap(lambda xi, c: memberships(xi, c, temperature=t), (0, None)), (None, 0))
+    mu = np.asarray(jax.jit(mu)(x, centre_sets))  # [2, 401, 5]
+    assert np.all((mu >= 0) & (mu <= 1))
+    f = np.asarray(_surface_fn(params, t)(jnp.concatenate([e, -e]), jnp.concatenate([ed, -ed])))
+    assert np.all(np.abs(f) <= 1.0)
+    np.testing.assert_allclose(f[e.size :], -f[: e.size], rtol=0, atol=ATOL_ROUND)  # odd
+    assert np.max(np.abs(f)) > 0.5  # not trivially zero
+    # Rule tables that name one consequent leave the other output sets at level 0. The smooth
+    # min(a, b, 1/2) of the centroid keeps 0 at 0 (a Boltzmann min with 1/2 would not: negative
+    # areas, outputs of order 100 at T = 0.3), so the output stays between 0 and that set.
+    one_consequent = (
+        ((("PS", "PS", "PM"), ("PM", "NM", "PM")), 0.0, 1.0),
+        ((("NM", "NM", "NM"), ("NS", "PM", "NM")), -1.0, 0.0),
+    )
+    for rules, lo, hi in one_consequent:
+        g = np.asarray(_surface_fn(params, 0.3, rules=rules)(e, ed))
+        assert np.all((g >= lo) & (g <= hi)), (rules, g.min(), g.max())
+        assert np.max(np.abs(g)) > 0.5
+
+
+@pytest.mark.parametrize("dtype, temperature", [(jnp.float64, 0.001), (jnp.float32, T_GRAD)])
+def test_smooth_gradients_finite_everywhere_and_dtype(dtype, temperature):
+    """Reverse-mode gradients w.r.t. every parameter and both inputs on a grid through both
+    no-rule corners and past the universe, where memberships underflow (float64 at a small
+    T, float32 at the working T); outputs in the universe, odd; dtypes preserved."""
+    params = fuzzy_params(dtype=dtype)
+    grid = np.linspace(-1.3, 1.3, 27)  # symmetric: the flat grid reversed is the mirror image
+    e, ed = (jnp.asarray(a.ravel(), dtype) for a in np.meshgrid(grid, grid, indexing="ij"))
+    surface = lambda p, a, b: fuzzy_surface(p, a, b, temperature=temperature)  # noqa: E731
+    value_and_grad = jax.jit(jax.vmap(jax.value_and_grad(surface, argnums=(0, 1, 2)), in_axes=(None, 0, 0)))
+    f, grads = value_and_grad(params, e, ed)
+    assert f.dtype == dtype
+    for leaf in jax.tree.leaves(grads):
+        assert leaf.dtype == dtype and np.all(np.isfinite(np.asarray(leaf)))
+    f = np.asarray(f)
+    assert np.all(np.abs(f) <= 1.0) and np.max(np.abs(f)) > 0.5
+    if dtype == jnp.float64:
+        np.testing.assert_allclose(f[::-1], -f, rtol=0, atol=ATOL_ROUND)
+    else:
+        f64 = _surface_fn(fuzzy_params(), temperature)(e.astype(jnp.float64), ed.astype(jnp.float64))
+        np.testing.assert_allclose(f, np.asarray(f64), rtol=0, atol=ATOL_F32_SMOOTH)
+        _, u = jax.eval_shape(fuzzy(temperature=temperature).step, params, (), jnp.array([0.21, -0.9], dtype))
+        assert u.dtype == dtype and u.shape == (1,)
+
+
+@pytest.mark.parametrize(
+    "temperature", [-0.01, float("nan"), float("inf"), -float("inf"), "0.1", None, jnp.array(0.02)]
+)
+def test_temperature_validation(temperature):
+    match = r"temperature must be a finite Python float >= 0"
+    with pytest.raises(ValueError, match=match):
+        fuzzy(temperature=temperature)
+    with pytest.raises(ValueError, match=match):
+        fuzzy_surface(fuzzy_params(), 0.0, 0.0, temperature=temperature)
+    with pytest.raises(ValueError, match=match):
+        memberships(0.0, jnp.asarray(PAPER_CENTRES), temperature=temperature)
+    fuzzy(temperature=np.float64(0.02))  # NumPy scalars and ints are accepted
+    fuzzy(temperature=0)

@@ -92,7 +92,8 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
 
 def test_readme_quick_start_matches_ci():
     readme = (ROOT / "README.md").read_text()
-    blocks = re.findall(r"```bash\n(.*?)\n```", readme, re.S)
+    quick_start = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```bash\n(.*?)\n```", quick_start, re.S)
     assert len(blocks) == 2 and "jaxflex reproduce" in blocks[0] and "pytest" in blocks[1]
     assert blocks[1] in (ROOT / ".ci" / "run").read_text()
 
