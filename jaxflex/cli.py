@@ -150,10 +150,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
 
     try:
         values = fileio.read_toml(args.config) if args.config else {}
-        known = {f.name for f in dataclasses.fields(MCConfig)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown config key(s) {unknown}; accepted: {sorted(known)}")
+        fileio.check_keys(values, [f.name for f in dataclasses.fields(MCConfig)], "config")
         if "scenarios" in values:
             values["scenarios"] = ScenarioSpec.from_mapping({"horizon_s": 3.0, **values["scenarios"]})
         if "percentiles" in values:

@@ -64,3 +64,10 @@ def read_toml(path: str | os.PathLike) -> dict[str, Any]:
             return tomllib.load(f)
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{path} is not valid TOML: {err}") from None
+
+
+def check_keys(values: Any, accepted: Any, what: str) -> None:
+    """Refuse unknown keys of a config table by name, listing the accepted ones."""
+    unknown = sorted(set(values) - set(accepted))
+    if unknown:
+        raise ValueError(f"unknown {what} key(s) {unknown}; accepted: {sorted(accepted)}")

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from jaxflex import beam
+from jaxflex import beam, fileio
 from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant, n_modes_of
 
 READINGS = ("printed", "block")
@@ -199,10 +199,7 @@ class ScenarioSpec:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "ScenarioSpec":
         """Build from a dict (e.g. a TOML table), refusing unknown keys by name."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown scenario key(s) {unknown}; accepted: {sorted(known)}")
+        fileio.check_keys(values, [f.name for f in dataclasses.fields(cls)], "scenario")
         return cls(**dict(values))
 
 

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxflex import fileio
 from jaxflex.plant import DiscretePlant
 from jaxflex.rollout import RunMetrics
 
@@ -73,10 +74,7 @@ class ObjectiveSpec:
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "ObjectiveSpec":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown objective key(s) {unknown}; accepted: {sorted(known)}")
+        fileio.check_keys(values, [f.name for f in dataclasses.fields(cls)], "objective")
         return cls(**dict(values))
 
 

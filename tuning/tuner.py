@@ -126,10 +126,7 @@ class TuneConfig:
     def from_mapping(cls, values: Mapping[str, Any], **overrides: Any) -> "TuneConfig":
         """From a dict shaped like the TOML file: top-level keys, [scenarios], [objective], [initial]."""
         values = dict(values)
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown config key(s) {unknown}; accepted: {sorted(known)}")
+        fileio.check_keys(values, [f.name for f in dataclasses.fields(cls)], "config")
         if "scenarios" in values:
             values["scenarios"] = ScenarioSpec.from_mapping(values["scenarios"])
         if "objective" in values:
