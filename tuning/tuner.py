@@ -254,6 +254,8 @@ def tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False
     problem = Problem(config)
     fingerprint = config.fingerprint()
     names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
+    if not resume and os.path.exists(ckpt_path):
+        raise ValueError(f"{out_dir} already holds a tuning run ({CHECKPOINT}): pass --resume to continue it, or choose another --out")
     if resume:
         if not os.path.exists(ckpt_path):
             raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
