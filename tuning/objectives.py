@@ -23,10 +23,8 @@ from typing import Any, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxflex import fileio
-from jaxflex.plant import DiscretePlant
 from jaxflex.rollout import RunMetrics
 
 TERMS = ("tip_ise", "hub_ise", "effort", "vibration")
@@ -118,46 +116,6 @@ def reduce_losses(losses: jax.Array, spec: ObjectiveSpec) -> jax.Array:
     return temp * (jax.nn.logsumexp(losses / temp) - jnp.log(losses.shape[0]))
 
 
-def dfs_loop_matrix(plant: DiscretePlant, k: jax.Array, tau_s: jax.Array, capacity: int) -> jax.Array:
-    """Transition matrix of the sampled DFS loop with a linearly interpolated delay line.
-
-    State ``[x_k, theta_{k-1}, ..., theta_{k-capacity}]``; exactly the jaxflex rollout with
-    ``dfs(dt, capacity, interpolation="linear")`` and no noise or force.
-    """
-    n_x = plant.Ad.shape[0]
-    dtype = plant.Ad.dtype
-    d = jnp.clip(tau_s / plant.dt, 0.0, capacity)
-    whole = jnp.minimum(jnp.floor(d), capacity - 1)
-    frac = d - whole
-    lags = jnp.arange(capacity + 1, dtype=dtype)
-    weights = (1 - frac) * (lags == whole) + frac * (lags == whole + 1)  # on theta_{k-j}, j = 0..capacity
-    # u_k = -k (theta_k - sum_j w_j theta_{k-j})
-    gain_theta = -k * (1 - weights[0])
-    gain_hist = k * weights[1:]  # [capacity]
-    top = plant.Ad + gain_theta * plant.Bd @ plant.C[:1]
-    top = jnp.concatenate([top, plant.Bd * gain_hist[None, :]], axis=1)
-    shift = jnp.zeros((capacity, n_x + capacity), dtype)
-    shift = shift.at[0, 0].set(1.0)
-    shift = shift.at[1:, n_x : n_x + capacity - 1].set(jnp.eye(capacity - 1, dtype=dtype))
-    return jnp.concatenate([top, shift], axis=0)
-
-
-def deflate_structural(loop: jax.Array, n_x: int) -> jax.Array:
-    """The loop matrix with the structural z = 1 removed exactly (one size smaller).
-
-    DFS has no position action: a constant hub angle with a matching history,
-    ``v = [e_0, 1, ..., 1]``, is an exact eigenvector with eigenvalue 1. With
-    ``T = I + (v - e_0) e_0^T`` (whose inverse is ``I - (v - e_0) e_0^T``), ``T^-1 M T`` has
-    first column ``e_0``, so its trailing block holds the other eigenvalues.
-    """
-    size = loop.shape[0]
-    e0 = jnp.zeros((size,), loop.dtype).at[0].set(1.0)
-    v = e0.at[n_x:].set(1.0)
-    t = jnp.eye(size, dtype=loop.dtype) + jnp.outer(v - e0, e0)
-    t_inv = jnp.eye(size, dtype=loop.dtype) - jnp.outer(v - e0, e0)
-    return (t_inv @ loop @ t)[1:, 1:]
-
-
 def spectral_radius(matrix: jax.Array) -> jax.Array:
     """Largest |eigenvalue| (exact, for reporting; its gradient is NaN at repeated eigenvalues)."""
     return jnp.max(jnp.abs(jnp.linalg.eigvals(matrix)))
@@ -168,7 +126,7 @@ def log_spectral_radius_smooth(matrix: jax.Array, squarings: int = 24) -> jax.Ar
 
     Gelfand's formula by normalised repeated squaring; it approaches log rho from above with
     an error of about log(cond) / N. Unlike ``eigvals`` its gradient is finite when the
-    matrix has repeated eigenvalues (the unused tail of the delay line is a nilpotent block).
+    matrix has repeated eigenvalues (the zero eigenvalues of the unused tail of the delay line).
     """
 
     def body(carry, _):

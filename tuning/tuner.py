@@ -23,6 +23,7 @@ import numpy as np
 import optax
 
 from jaxflex import beam, fileio
+from jaxflex.analysis import stability
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, sample_scenarios, scenario_plant
@@ -174,8 +175,8 @@ class Problem:
         if self.config.controller != "dfs":
             return None  # a fuzzy part is nonlinear: no sampled-loop matrix
         params = self.tc.to_physical(raw)
-        loop = objectives.dfs_loop_matrix(self.nominal, params.k, params.tau_s, self.config.capacity)
-        return objectives.log_spectral_radius_smooth(objectives.deflate_structural(loop, self.nominal.Ad.shape[0]))
+        loop = stability.deflated_loop_matrix(self.nominal, params.k, params.tau_s / self.dt, self.config.capacity)
+        return objectives.log_spectral_radius_smooth(loop)
 
     def _objective(self, raw: Any, batch: Scenario) -> tuple[jax.Array, dict[str, jax.Array]]:
         terms = self._terms(raw, batch)
@@ -351,11 +352,10 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
     elif problem.config.controller == "dfs+fuzzy":
         dfs_params = physical[0]
     if dfs_params is not None:
-        n_x = problem.nominal.Ad.shape[0]
 
         def radius(p):
-            loop = objectives.dfs_loop_matrix(problem.nominal, p.k, p.tau_s, problem.config.capacity)
-            return float(objectives.spectral_radius(objectives.deflate_structural(loop, n_x)))
+            loop = stability.deflated_loop_matrix(problem.nominal, p.k, p.tau_s / problem.dt, problem.config.capacity)
+            return float(objectives.spectral_radius(loop))
 
         rho = radius(dfs_params)
         paper_rho = radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0])

@@ -600,26 +600,53 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
 
 
 def _loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int) -> jax.Array:
+    """The loop map for a whole or fractional delay d (linear interpolation between samples).
+
+    ``theta(t - d dt) ~ (1 - f) theta_{k-w} + f theta_{k-w-1}`` with ``w = floor(d)``, ``f = d - w``:
+    exactly the rollout with ``dfs(interpolation="linear")`` (and with "nearest" at whole d).
+    History slots beyond ``ceil(d)`` are neither shifted nor read.
+    """
     Ad, Bd = plant.Ad, plant.Bd
     dtype = Ad.dtype
     c = plant.C[:1]  # [1, n]
     k = jnp.asarray(k, dtype)
-    slots = jnp.arange(1, n_hist + 1)
-    tap = (slots == delay_steps).astype(dtype)[None, :]  # [1, n_hist] reads theta_{k-d}
-    shift = (slots[:, None] == slots[None, :] + 1) & (slots[:, None] <= delay_steps)  # h_i <- h_{i-1}, i <= d
-    top = jnp.concatenate([Ad - k * Bd @ c, k * Bd @ tap], axis=1)
+    d = jnp.asarray(delay_steps, dtype)
+    whole = jnp.floor(d)
+    frac = d - whole
+    lags = jnp.arange(n_hist + 1, dtype=dtype)  # weights on theta_{k-j}, j = 0..n_hist
+    weights = (1 - frac) * (lags == whole) + frac * (lags == whole + 1)
+    slots = jnp.arange(1, n_hist + 1, dtype=dtype)
+    live = jnp.ceil(d)
+    shift = (slots[:, None] == slots[None, :] + 1) & (slots[:, None] <= live)  # h_i <- h_{i-1}, i <= ceil(d)
+    top = jnp.concatenate([Ad - k * (1 - weights[0]) * Bd @ c, k * Bd @ weights[None, 1:]], axis=1)
     first = (slots == 1).astype(dtype)[:, None] * c  # h_1 <- theta_k
     hist = jnp.concatenate([first, shift.astype(dtype)], axis=1)
     return jnp.concatenate([top, hist], axis=0)
 
 
+def deflated_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int) -> jax.Array:
+    """The sampled loop map restricted to the complement of its structural eigenvectors.
+
+    Its eigenvalues are those of :func:`sampled_loop_matrix` with one eigenvalue 1 removed per
+    structural direction. ``delay_steps`` may be fractional and traced (linear interpolation;
+    see ``_loop_matrix``); the plant must be concrete.
+    """
+    return _deflated(plant, k, delay_steps, jnp.asarray(structural_directions(plant), plant.Ad.dtype), n_hist)
+
+
+def _deflated(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, v: jax.Array, n_hist: int) -> jax.Array:
+    """``Q2^T M Q2`` with Q2 the orthonormal complement of the structural eigenvectors; v: [n_x, n0]."""
+    dtype = v.dtype
+    live = (jnp.arange(1, n_hist + 1, dtype=dtype) <= jnp.ceil(jnp.asarray(delay_steps, dtype))).astype(dtype)[:, None]
+    r = jnp.concatenate([v, live * (plant.C[:1] @ v)], axis=0)  # [v, c v, ..., c v, 0, ...]
+    q2 = _deflation_basis(r)
+    return q2.T @ _loop_matrix(plant, k, delay_steps, n_hist) @ q2
+
+
 @partial(jax.jit, static_argnums=4)
 def _sampled_eigs(plant: DiscretePlant, k: jax.Array, delay_steps: jax.Array, v: jax.Array, n_hist: int) -> jax.Array:
     """Deflated eigenvalues of the sampled loop by decreasing modulus; v: [n_x, n0]."""
-    live = (jnp.arange(1, n_hist + 1) <= delay_steps).astype(v.dtype)[:, None]  # [n_hist, 1]
-    r = jnp.concatenate([v, live * (plant.C[:1] @ v)], axis=0)  # [v, c v, ..., c v, 0, ...]
-    q2 = _deflation_basis(r)
-    eig = jnp.linalg.eigvals(q2.T @ _loop_matrix(plant, k, delay_steps, n_hist) @ q2)
+    eig = jnp.linalg.eigvals(_deflated(plant, k, delay_steps, v, n_hist))
     return eig[jnp.argsort(-jnp.abs(eig))]
 
 
