@@ -198,7 +198,7 @@ class Problem:
             (loss, aux), grads = jax.value_and_grad(self._objective, has_aux=True)(raw, batch)
             updates, opt_state = optimizer.update(grads, opt_state, raw)
             raw = optax.apply_updates(raw, updates)
-            return raw, opt_state, {"loss": loss, "grad_norm": optax.global_norm(grads), **aux}
+            return raw, opt_state, {"loss": loss, "grad_norm": optax.tree.norm(grads), **aux}
 
         return train_step
 
