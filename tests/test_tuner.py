@@ -73,6 +73,13 @@ def test_tuner_objective_gradient_matches_fd():
     assert float(problem._objective(raw, problem.train)[1]["penalty"]) > 0  # the penalty is active here
 
 
+def test_any_optax_optimizer_is_accepted(tmp_path):
+    import optax
+
+    state = tune(TuneConfig(controller="dfs", steps=3, eval_every=1, **SMALL), tmp_path, progress=False, optimizer=optax.sgd(1e-3, momentum=0.9))
+    assert state["step"] == 3 and "trace" in type(state["opt_state"][1][0]).__name__.lower()
+
+
 def test_second_train_step_does_not_retrace():
     problem = Problem(TuneConfig(controller="fuzzy", **SMALL))
     calls = []

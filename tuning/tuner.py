@@ -139,7 +139,7 @@ class TuneConfig:
 class Problem:
     """The pieces a run needs: batches, the controller, the loss, the jitted functions."""
 
-    def __init__(self, config: TuneConfig):
+    def __init__(self, config: TuneConfig, optimizer: optax.GradientTransformation | None = None):
         self.config = config
         spec = config.scenarios
         self.dt = spec.dt
@@ -153,7 +153,8 @@ class Problem:
         initial = self.tc.from_named(dict(config.initial))
         self.initial_raw = self.tc.to_raw(initial)
         self.paper_raw = self.tc.to_raw(self.tc.paper)
-        self.optimizer = optax.chain(optax.clip_by_global_norm(config.clip_norm), optax.adam(config.learning_rate))
+        inner = optax.adam(config.learning_rate) if optimizer is None else optimizer
+        self.optimizer = optax.chain(optax.clip_by_global_norm(config.clip_norm), inner)
         self.scales = jax.jit(self._terms)(self.paper_raw, self.train)
         self.scales = objectives.reference_scales(self.scales)
         self.evaluate = jax.jit(self._objective)
@@ -234,7 +235,15 @@ def _history_csv(history: list[dict[str, Any]], names: list[str]) -> str:
     return buf.getvalue()
 
 
-def tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, on_step: Callable[[int], None] | None = None) -> dict[str, Any]:
+def tune(
+    config: TuneConfig,
+    out_dir: str | os.PathLike,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    on_step: Callable[[int], None] | None = None,
+    optimizer: optax.GradientTransformation | None = None,
+) -> dict[str, Any]:
     """Run (or resume) a tuning run; returns the final state (raw/best parameters, history).
 
     Args:
@@ -244,6 +253,9 @@ def tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False
         with another configuration).
       progress: show a tqdm progress bar with the loss and the validation objective.
       on_step: called with the step number after each step (tests use it to interrupt).
+      optimizer: any optax GradientTransformation (default Adam at ``config.learning_rate``);
+        gradients are clipped to ``config.clip_norm`` before it. A resumed run must use the
+        same optimizer (its state is in the checkpoint).
 
     Raises:
       ValueError: bad configuration, a checkpoint of another run, or an objective that
@@ -252,7 +264,7 @@ def tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     ckpt_path = os.path.join(out_dir, CHECKPOINT)
-    problem = Problem(config)
+    problem = Problem(config, optimizer)
     fingerprint = config.fingerprint()
     names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
     if not resume and os.path.exists(ckpt_path):
