@@ -49,6 +49,10 @@ def _parser() -> argparse.ArgumentParser:
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
     stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
 
+    bench = sub.add_parser("bench", help="quick benchmark of vectorised closed-loop rollouts (under two minutes); prints a table")
+    bench.add_argument("--json", default=None, help="write one JSON object per configuration (JSON Lines) to this file")
+    bench.add_argument("--full", action="store_true", help="add the batch sweep and float64 (several minutes)")
+
     mc = sub.add_parser("montecarlo", help="batched Monte Carlo over sampled scenarios: statistics, histograms, percentile bands")
     mc.add_argument("--controller", choices=("open_loop", "dfs", "fuzzy", "dfs+fuzzy"), default=None, help="controller (default dfs+fuzzy)")
     mc.add_argument("--params", default=None, help="tuned.json from `jaxflex tune` (default: the paper's gains)")
@@ -99,6 +103,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _montecarlo(args)
     if args.command == "stability":
         return _stability(args)
+    if args.command == "bench":
+        from jaxflex.bench import run_bench
+
+        run_bench(args.json, quick=not args.full)
+        return 0
     return 2  # pragma: no cover - argparse enforces the choices
 
 

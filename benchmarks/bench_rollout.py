@@ -1,0 +1,581 @@
+"""Closed-loop rollout benchmark: plant steps per second against batch size, controller,
+sampling method, dtype and mode, with NumPy / python-control / scikit-fuzzy baselines.
+
+Prints one JSON line per configuration (style.md section 8); ``--out FILE.json`` also writes
+them as one JSON document ``{"meta": ..., "rows": [...]}``; ``--tables FILE.json ...`` turns
+result documents into the Markdown tables of ``benchmarks/README.md``.
+
+Sections (``--section``, default all):
+
+* ``matmul``: the float32 matmul rate of this machine (jnp.dot and NumPy), the reference for
+  the FLOP fraction.
+* ``sweep``: the paper's DFS+fuzzy controller (faithful centroid, ZOH, float32) forward over
+  batch sizes 1 .. 131072 (while memory allows), the singleton and smooth variants and the
+  gradient at a few sizes.
+* ``matrix``: every controller x {rk4, zoh} x {float32, float64} x {forward, grad} at one
+  batch size.
+* ``memory``: compiled memory of metrics-only and trajectory rollouts at two horizons.
+* ``flops``: floating-point operations per closed-loop step, counted on the rollout's jaxpr.
+* ``baselines``: NumPy (batch 4096), python-control and scikit-fuzzy (one scenario, short
+  horizon), each checked against jaxflex before it is timed, with jaxflex timed beside them.
+* ``ab``: the rollout and fuzzy modules of git revision ``--ab-rev`` (before the layout
+  changes) against the working tree's, in one process, timed in interleaved rounds.
+
+Examples::
+
+    python benchmarks/bench_rollout.py --out benchmarks/results/cpu_default.json
+    python benchmarks/bench_rollout.py --host-devices 2 --no-intra-op-threads --section sweep matrix
+    taskset -c 1 python benchmarks/bench_rollout.py --section sweep --out benchmarks/results/cpu_1core.json
+    python benchmarks/bench_rollout.py --tables benchmarks/results/*.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from typing import Any, Callable
+
+SECTIONS = ("matmul", "flops", "memory", "baselines", "sweep", "matrix", "ab")
+AB_REV = "620479b"  # the last commit before the layout changes of rollout.py and fuzzy.py
+SWEEP_BATCHES = (1, 16, 256, 1024, 4096, 16384, 65536, 131072)
+MAX_SWEEP_STEPS = 1.4e8  # cap on batch * horizon of one call in the sweep (memory and time)
+RTOL_NUMPY = 1e-10  # float64, same arithmetic in another order (observed ~3e-15)
+RTOL_CONTROL = 1e-10  # python-control: float64, the same maps (observed ~1e-14)
+# scikit-fuzzy integrates the centroid on a sampled universe (2001 points, step 1e-3): each
+# clip kink between samples moves the area and moment by <= DU^2 / 4 (tests/test_fuzzy.py),
+# so the surface is off by ~1e-6 relative where rules fire well; along a closed loop that
+# stays O(1e-5) of the peak (observed 4e-6).
+RTOL_SKFUZZY = 1e-4
+
+
+def _setup_jax(args: argparse.Namespace) -> None:
+    """Host devices and XLA flags must be set before JAX starts its backend."""
+    if args.no_intra_op_threads:
+        flag = "--xla_cpu_multi_thread_eigen=false"
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
+    import jax
+
+    if args.host_devices > 1:
+        jax.config.update("jax_num_cpu_devices", args.host_devices)
+
+
+def _meta() -> dict[str, Any]:
+    import jax
+    import numpy as np
+
+    from jaxflex.bench import device_info
+
+    meta = device_info()
+    meta.update(
+        {
+            "affinity_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+            "loadavg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+            "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "scipy_version": _version("scipy"),
+            "control_version": _version("control"),
+            "skfuzzy_version": _version("skfuzzy"),
+            "command": " ".join(sys.argv),
+        }
+    )
+    del jax, np
+    return meta
+
+
+def _version(module: str) -> str | None:
+    try:
+        return __import__(module).__version__
+    except Exception:  # noqa: BLE001 - a missing optional package
+        return None
+
+
+class Emitter:
+    """Prints each row as one JSON line and keeps it for ``--out``."""
+
+    def __init__(self, meta: dict[str, Any]):
+        self.meta = meta
+        self.rows: list[dict[str, Any]] = []
+
+    def __call__(self, row: dict[str, Any]) -> None:
+        row = {**row, "affinity_cores": self.meta["affinity_cores"]}
+        self.rows.append(row)
+        print(json.dumps(_jsonable(row)), flush=True)
+
+
+def _jsonable(value: Any) -> Any:
+    from jaxflex.fileio import to_jsonable
+
+    return to_jsonable(value)
+
+
+# -- matmul ------------------------------------------------------------------------------------
+
+
+def section_matmul(emit: Callable, runs: int) -> None:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxflex.bench import time_calls
+
+    for n in (1024, 2048, 4096):
+        a = jnp.asarray(np.random.default_rng(0).standard_normal((n, n)), jnp.float32)
+        t = time_calls(jax.jit(jnp.dot), (a, a), runs)
+        a_np = np.asarray(a)
+        walls = []
+        for _ in range(runs):
+            start = time.perf_counter()
+            a_np @ a_np
+            walls.append(time.perf_counter() - start)
+        flops = 2.0 * n**3
+        emit({"kind": "matmul", "n": n, "dtype": "float32", "jax_gflops": flops / t["median_s"] / 1e9, "jax_gflops_best": flops / t["min_s"] / 1e9, "numpy_gflops": flops / float(np.median(walls)) / 1e9, "numpy_gflops_best": flops / min(walls) / 1e9, "cpu_util": t["cpu_util"]})
+
+
+# -- flops -------------------------------------------------------------------------------------
+
+_ONE_FLOP = {"add", "sub", "mul", "div", "max", "min", "neg", "abs", "select_n", "gt", "lt", "ge", "le", "eq", "ne", "sign", "floor", "round", "clamp", "add_any"}
+_TRANSCENDENTAL = {"exp", "log", "log1p", "logistic", "tanh", "sin", "cos", "sqrt", "rsqrt", "expm1", "pow"}
+
+
+def count_flops(jaxpr: Any) -> tuple[int, int]:
+    """(arithmetic, transcendental) floating-point operations of a jaxpr, recursing into
+    sub-jaxprs; an elementwise op counts once per output element, ``integer_pow`` as its
+    multiplications, ``dot_general`` as 2 M N K."""
+    import numpy as np
+
+    arith = trans = 0
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        out = eqn.outvars[0].aval if eqn.outvars else None
+        size = int(np.prod(out.shape)) if out is not None and hasattr(out, "shape") else 1
+        floating = out is not None and hasattr(out, "dtype") and np.issubdtype(out.dtype, np.floating)
+        compare = name in {"gt", "lt", "ge", "le", "eq", "ne"} and np.issubdtype(eqn.invars[0].aval.dtype, np.floating)
+        if name in _ONE_FLOP and (floating or compare):
+            arith += size
+        elif name == "integer_pow" and floating:
+            arith += size * max(abs(int(eqn.params["y"])) - 1, 1)
+        elif name in _TRANSCENDENTAL and floating:
+            trans += size
+        elif name == "dot_general" and floating:
+            (contract, _), _ = eqn.params["dimension_numbers"]
+            k = int(np.prod([eqn.invars[0].aval.shape[d] for d in contract]))
+            arith += 2 * size * k
+        elif name == "reduce_sum" and floating:
+            arith += int(np.prod(eqn.invars[0].aval.shape))
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (tuple, list)) else (value,):
+                inner = getattr(sub, "jaxpr", None)
+                if inner is not None and hasattr(inner, "eqns"):
+                    a, t = count_flops(inner)
+                    arith, trans = arith + a, trans + t
+                elif hasattr(sub, "eqns"):
+                    a, t = count_flops(sub)
+                    arith, trans = arith + a, trans + t
+    return arith, trans
+
+
+def flops_per_step(controller: str, defuzz: str, integrator: str = "zoh") -> tuple[int, int]:
+    """Per-step FLOPs of the metrics rollout: the scan body of one unbatched scenario."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxflex.bench import bench_inputs, bench_plant, controller_and_params
+    from jaxflex.rollout import rollout
+    from jaxflex.scenarios import Scenario
+
+    plant = bench_plant(integrator, jnp.float32)
+    ctrl, params = controller_and_params(controller, defuzz, jnp.float32)
+    x0, force, noise = bench_inputs(1, 8, jnp.float32)
+    closed = jax.make_jaxpr(lambda p, x: rollout(plant, ctrl, p, Scenario(x, force, noise), output="metrics"))(params, x0[0])
+    scans = [e for e in closed.jaxpr.eqns if e.primitive.name == "scan"]
+    return count_flops(scans[0].params["jaxpr"].jaxpr)
+
+
+def section_flops(emit: Callable) -> None:
+    for controller, defuzz in (("open_loop", "centroid"), ("dfs", "centroid"), ("fuzzy", "centroid"), ("fuzzy", "singleton"), ("fuzzy", "smooth"), ("dfs+fuzzy", "centroid"), ("dfs+fuzzy", "singleton"), ("dfs+fuzzy", "smooth")):
+        arith, trans = flops_per_step(controller, defuzz)
+        emit({"kind": "flops", "controller": controller, "defuzz": None if "fuzzy" not in controller else defuzz, "flops_per_step": arith, "transcendental_per_step": trans})
+
+
+# -- memory ------------------------------------------------------------------------------------
+
+
+def section_memory(emit: Callable, batch: int) -> None:
+    import jax
+    import jax.numpy as jnp
+
+    from jaxflex.bench import bench_inputs, bench_plant, controller_and_params
+    from jaxflex.rollout import rollout
+    from jaxflex.scenarios import Scenario
+
+    plant = bench_plant("zoh", jnp.float32)
+    ctrl, params = controller_and_params("dfs+fuzzy", "centroid", jnp.float32)
+    for output in ("metrics", "trajectory"):
+        for horizon in (1000, 10000):
+            x0, force, noise = bench_inputs(batch, horizon, jnp.float32)
+
+            def f(p, x0, force, noise):
+                return jax.vmap(lambda x: rollout(plant, ctrl, p, Scenario(x, force, noise), output=output))(x0)
+
+            compiled = jax.jit(f).lower(params, x0, force, noise).compile()
+            m = compiled.memory_analysis()
+            emit(
+                {
+                    "kind": "memory",
+                    "controller": "dfs+fuzzy",
+                    "output": output,
+                    "batch": batch,
+                    "horizon": horizon,
+                    "dtype": "float32",
+                    "temp_bytes": int(m.temp_size_in_bytes),
+                    "argument_bytes": int(m.argument_size_in_bytes),
+                    "output_bytes": int(m.output_size_in_bytes),
+                    "peak_bytes": int(m.temp_size_in_bytes + m.argument_size_in_bytes + m.output_size_in_bytes - m.alias_size_in_bytes),
+                }
+            )
+
+
+# -- baselines ---------------------------------------------------------------------------------
+
+
+def _rel_err(a: Any, b: Any) -> float:
+    import numpy as np
+
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
+
+
+def check_baselines(batch: int = 8, horizon: int = 300, skfuzzy_horizon: int = 300, control_horizon: int = 300, controllers: tuple[str, ...] = ("open_loop", "dfs", "fuzzy", "dfs+fuzzy")) -> list[dict[str, Any]]:
+    """Every baseline against the jaxflex trajectory in float64 (raises on disagreement).
+
+    NumPy: every controller in ``controllers`` (both faithful defuzzifiers) on ``batch``
+    scenarios; scikit-fuzzy and python-control: DFS+fuzzy on one scenario (python-control
+    without sensor noise).
+    """
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from benchmarks import baselines as bl
+    from jaxflex.bench import bench_inputs, bench_plant, controller_and_params
+    from jaxflex.rollout import rollout
+    from jaxflex.scenarios import Scenario
+
+    rows = []
+    with jax.enable_x64(True):
+        plant = bench_plant("zoh", jnp.float64)
+        pa = bl.plant_arrays(plant, np.float64)
+        x0, force, noise = bench_inputs(batch, horizon, jnp.float64)
+        for controller in controllers:
+            for defuzz in ("centroid", "singleton") if "fuzzy" in controller else ("centroid",):
+                ctrl, params = controller_and_params(controller, defuzz, jnp.float64)
+                traj = jax.vmap(lambda x: rollout(plant, ctrl, params, Scenario(x, force, noise)))(x0)
+                ref = bl.numpy_closed_loop(pa, bl.loop_spec(controller, defuzz), np.asarray(x0), np.asarray(force), np.asarray(noise), record=True)
+                err = max(_rel_err(ref["x"].transpose(1, 0, 2), traj.x), _rel_err(ref["u"].T, traj.u[..., 0]) if controller != "open_loop" else 0.0)
+                rows.append({"kind": "baseline_check", "baseline": "numpy", "controller": controller, "defuzz": defuzz if "fuzzy" in controller else None, "max_rel_err": err, "rtol": RTOL_NUMPY})
+        ctrl, params = controller_and_params("dfs+fuzzy", "centroid", jnp.float64)
+        spec = bl.loop_spec("dfs+fuzzy")
+        one = Scenario(x0[1, :], force[:skfuzzy_horizon], noise[:skfuzzy_horizon])
+        traj = rollout(plant, ctrl, params, one)
+        sk = bl.skfuzzy_closed_loop(pa, spec, np.asarray(one.x0), np.asarray(one.force), np.asarray(one.noise))
+        err = max(_rel_err(sk["x"], traj.x), _rel_err(sk["u"], traj.u[:, 0]))
+        rows.append({"kind": "baseline_check", "baseline": "skfuzzy", "controller": "dfs+fuzzy", "defuzz": "centroid", "max_rel_err": err, "rtol": RTOL_SKFUZZY})
+        quiet = Scenario(x0[1, :], force[:control_horizon], jnp.zeros_like(noise[:control_horizon]))
+        traj = rollout(plant, ctrl, params, quiet)
+        pc = bl.python_control_closed_loop(pa, spec, np.asarray(quiet.x0), np.asarray(quiet.force))
+        err = max(_rel_err(pc["x"], traj.x), _rel_err(pc["u"], traj.u[:, 0]))
+        rows.append({"kind": "baseline_check", "baseline": "python-control", "controller": "dfs+fuzzy", "defuzz": "centroid", "max_rel_err": err, "rtol": RTOL_CONTROL})
+    for row in rows:
+        if not row["max_rel_err"] <= row["rtol"]:
+            raise AssertionError(f"baseline disagrees with jaxflex: {row}")
+    return rows
+
+
+def section_baselines(emit: Callable, runs: int, batch: int, horizon: int, short_horizon: int) -> None:
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jax
+
+    from benchmarks import baselines as bl
+    from jaxflex.bench import BenchConfig, bench_inputs_np, bench_plant, measure
+
+    for row in check_baselines():
+        emit(row)
+    spec = bl.loop_spec("dfs+fuzzy")
+    with jax.enable_x64(True):
+        plant64 = bl.plant_arrays(bench_plant("zoh", jnp.float64), np.float64)
+    # NumPy, batched, in both dtypes, the same configuration as jaxflex's beside it.
+    for dtype in ("float32", "float64"):
+        pa = {k: v.astype(dtype) for k, v in plant64.items()}
+        x0, force, noise = (a.astype(dtype) for a in bench_inputs_np(batch, horizon))
+        walls = []
+        for _ in range(max(runs // 2, 2)):
+            start = time.perf_counter()
+            bl.numpy_closed_loop(pa, spec, x0, force, noise)
+            walls.append(time.perf_counter() - start)
+        emit({"kind": "baseline", "baseline": "numpy", "controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": dtype, "batch": batch, "horizon": horizon, "median_s": float(np.median(walls)), "steps_per_second": batch * horizon / float(np.median(walls)), "steps_per_second_best": batch * horizon / min(walls)})
+        emit({**measure(BenchConfig(dtype=dtype, batch=batch, horizon=horizon, runs=runs)), "kind": "rollout_vs_baseline"})
+    # One scenario: python-control and scikit-fuzzy per step, jaxflex at batch 1 beside them.
+    pa = plant64
+    x0, force, noise = bench_inputs_np(2, short_horizon)
+    start = time.perf_counter()
+    bl.python_control_closed_loop(pa, spec, x0[1], force)
+    wall = time.perf_counter() - start
+    emit({"kind": "baseline", "baseline": "python-control", "controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": "float64", "batch": 1, "horizon": short_horizon, "median_s": wall, "steps_per_second": short_horizon / wall, "seconds_per_step": wall / short_horizon})
+    start = time.perf_counter()
+    bl.skfuzzy_closed_loop(pa, spec, x0[1], force, noise)
+    wall = time.perf_counter() - start
+    emit({"kind": "baseline", "baseline": "skfuzzy", "controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": "float64", "batch": 1, "horizon": short_horizon, "median_s": wall, "steps_per_second": short_horizon / wall, "seconds_per_step": wall / short_horizon})
+    for dtype in ("float64", "float32"):
+        emit({**measure(BenchConfig(dtype=dtype, batch=1, horizon=horizon, runs=runs)), "kind": "rollout_vs_baseline"})
+
+
+# -- throughput --------------------------------------------------------------------------------
+
+
+def _measure_or_skip(emit: Callable, cfg: Any) -> bool:
+    from jaxflex.bench import measure
+
+    try:
+        emit(measure(cfg))
+        return True
+    except (MemoryError, RuntimeError) as exc:  # XLA reports allocation failures as RuntimeError
+        emit({"kind": "skipped", "config": cfg.__dict__, "reason": f"{type(exc).__name__}: {str(exc)[:200]}"})
+        return False
+
+
+def section_sweep(emit: Callable, runs: int, horizon: int, batches: tuple[int, ...], grad_batches: tuple[int, ...]) -> None:
+    from jaxflex.bench import BenchConfig
+
+    for batch in batches:
+        h = horizon if batch * horizon <= MAX_SWEEP_STEPS else max(int(MAX_SWEEP_STEPS // batch), 100)
+        if not _measure_or_skip(emit, BenchConfig(batch=batch, horizon=h, runs=runs)):
+            break
+    for defuzz in ("singleton", "smooth"):
+        for batch in (1024, 4096, 16384):
+            _measure_or_skip(emit, BenchConfig(defuzz=defuzz, batch=batch, horizon=horizon, runs=runs))
+    for integrator in ("rk4",):
+        for batch in (1024, 4096, 16384):
+            _measure_or_skip(emit, BenchConfig(integrator=integrator, batch=batch, horizon=horizon, runs=runs))
+    for batch in grad_batches:
+        _measure_or_skip(emit, BenchConfig(batch=batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2)))
+
+
+def section_matrix(emit: Callable, runs: int, horizon: int, batch: int, grad_batch: int) -> None:
+    from jaxflex.bench import CONTROLLERS, BenchConfig
+
+    for controller in CONTROLLERS:
+        for defuzz in ("centroid", "singleton", "smooth") if "fuzzy" in controller else ("centroid",):
+            for integrator in ("rk4", "zoh"):
+                for dtype in ("float32", "float64"):
+                    if defuzz != "centroid" and (integrator, dtype) != ("zoh", "float32"):
+                        continue  # the variants once, in the headline setting
+                    _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=batch, horizon=horizon, runs=runs))
+                    if controller != "open_loop" and integrator == "zoh":
+                        _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=grad_batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2)))
+
+
+# -- ab: before / after the layout changes ---------------------------------------------------
+
+
+def _module_at(rev: str, path: str, name: str) -> Any:
+    """Import ``path`` as it was at git revision ``rev`` under the module name ``name``."""
+    import importlib.util
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    src = subprocess.run(["git", "show", f"{rev}:{path}"], capture_output=True, text=True, check=True, cwd=root).stdout
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(name, loader=None))
+    sys.modules[name] = module
+    exec(compile(src, f"{rev}:{path}", "exec"), module.__dict__)  # noqa: S102 - our own history
+    return module
+
+
+def section_ab(emit: Callable, runs: int, horizon: int, batch: int, grad_batch: int, rev: str) -> None:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxflex.controllers.fuzzy  # noqa: F401 - the working tree's modules
+    import jaxflex.rollout  # noqa: F401
+    from jaxflex.bench import bench_inputs, bench_plant
+    from jaxflex.controllers import DFSParams, combine, dfs
+    from jaxflex.scenarios import Scenario
+
+    new_fuzzy = sys.modules["jaxflex.controllers.fuzzy"]  # the package re-exports functions of the same names
+    new_rollout = sys.modules["jaxflex.rollout"]
+    old_rollout = _module_at(rev, "jaxflex/rollout.py", "_ab_rollout")
+    old_fuzzy = _module_at(rev, "jaxflex/controllers/fuzzy.py", "_ab_fuzzy")
+    plant = bench_plant("zoh", jnp.float32)
+    variants = {}
+    for r_name, r_mod in (("old", old_rollout), ("new", new_rollout)):
+        for f_name, f_mod in (("old", old_fuzzy), ("new", new_fuzzy)):
+            ctrl = combine(dfs(1e-3), f_mod.fuzzy())
+            params = (DFSParams(jnp.float32(55.0), jnp.float32(0.005)), f_mod.fuzzy_params(1.02, 0.30, 1.0, dtype=jnp.float32))
+            for mode, b in (("forward", batch), ("grad", grad_batch)):
+                if mode == "grad" and r_name != f_name:
+                    continue
+                x0, force, noise = bench_inputs(b, horizon, jnp.float32)
+
+                def metrics(p, x0, r_mod=r_mod, ctrl=ctrl, force=force, noise=noise):
+                    return jax.vmap(lambda x: r_mod.rollout(plant, ctrl, p, Scenario(x, force, noise), output="metrics"))(x0)
+
+                fn = jax.jit(metrics) if mode == "forward" else jax.jit(jax.value_and_grad(lambda p, x0, m=metrics: jnp.mean(m(p, x0).tip_ise)))
+                variants[(r_name, f_name, mode)] = (fn, (params, x0), b)
+    first = {}
+    for key, (fn, args, _) in variants.items():
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        first[key] = time.perf_counter() - start
+    walls = {key: [] for key in variants}
+    for _ in range(runs):  # interleaved rounds: the machine's load affects all variants alike
+        for key, (fn, args, _) in variants.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            walls[key].append(time.perf_counter() - start)
+    for (r_name, f_name, mode), (_, _, b) in variants.items():
+        w = walls[(r_name, f_name, mode)]
+        emit({"kind": "ab", "rollout": r_name, "fuzzy": f_name, "rev": rev, "controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": "float32", "batch": b, "horizon": horizon, "mode": mode, "median_s": float(np.median(w)), "min_s": min(w), "compile_s": first[(r_name, f_name, mode)] - float(np.median(w)), "steps_per_second": b * horizon / float(np.median(w)), "steps_per_second_best": b * horizon / min(w)})
+
+
+# -- tables ------------------------------------------------------------------------------------
+
+
+def _fmt(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3g}"
+
+
+def render_tables(paths: list[str]) -> str:
+    """Markdown tables from result documents (``--out`` files)."""
+    docs = []
+    for path in paths:
+        with open(path, encoding="utf-8") as f:
+            docs.append((os.path.basename(path), json.load(f)))
+    out = []
+    for name, doc in docs:
+        meta, rows = doc["meta"], doc["rows"]
+        out.append(f"### {name}\n")
+        out.append(
+            f"{meta['cpu_model']}, {meta['cpu_count']} cores ({meta['affinity_cores']} usable by the run), "
+            f"{meta['n_devices']} JAX device(s) ({meta['device_kind']}), XLA_FLAGS=`{meta['xla_flags'] or '-'}`, "
+            f"jax {meta['jax_version']}, numpy {meta['numpy_version']}, load average at start {meta['loadavg_1min']:.2f}, "
+            f"{meta['time_utc']}. GPU: {meta.get('gpu', '-')}.\n\nCommand: `{meta['command']}`\n"
+        )
+        kinds = {r["kind"] for r in rows}
+        if "matmul" in kinds:
+            out.append("| matmul n | jnp.dot GFLOP/s (median / best) | NumPy GFLOP/s (median / best) |\n|---:|---:|---:|")
+            for r in rows:
+                if r["kind"] == "matmul":
+                    out.append(f"| {r['n']} | {r['jax_gflops']:.1f} / {r['jax_gflops_best']:.1f} | {r['numpy_gflops']:.1f} / {r['numpy_gflops_best']:.1f} |")
+            out.append("")
+        if "flops" in kinds:
+            out.append("| controller | defuzz | FLOPs / step | transcendental / step |\n|---|---|---:|---:|")
+            for r in rows:
+                if r["kind"] == "flops":
+                    out.append(f"| {r['controller']} | {r['defuzz'] or '-'} | {r['flops_per_step']} | {r['transcendental_per_step']} |")
+            out.append("")
+        if "memory" in kinds:
+            out.append("| output | batch | horizon | temp MiB | argument MiB | output MiB |\n|---|---:|---:|---:|---:|---:|")
+            for r in rows:
+                if r["kind"] == "memory":
+                    out.append(f"| {r['output']} | {r['batch']} | {r['horizon']} | {r['temp_bytes'] / 2**20:.2f} | {r['argument_bytes'] / 2**20:.2f} | {r['output_bytes'] / 2**20:.2f} |")
+            out.append("")
+        if kinds & {"baseline", "baseline_check", "rollout_vs_baseline"}:
+            out.append("| check | controller | max rel. error vs jaxflex | tolerance |\n|---|---|---:|---:|")
+            for r in rows:
+                if r["kind"] == "baseline_check":
+                    out.append(f"| {r['baseline']} | {r['controller']}{'/' + r['defuzz'] if r['defuzz'] else ''} | {r['max_rel_err']:.1e} | {r['rtol']:.0e} |")
+            out.append("")
+            out.append("| implementation | dtype | batch | horizon | steps/s (median) | steps/s (best) |\n|---|---|---:|---:|---:|---:|")
+            for r in rows:
+                if r["kind"] == "baseline":
+                    out.append(f"| {r['baseline']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {_fmt(r['steps_per_second'])} | {_fmt(r.get('steps_per_second_best'))} |")
+                elif r["kind"] == "rollout_vs_baseline":
+                    out.append(f"| jaxflex | {r['dtype']} | {r['batch']} | {r['horizon']} | {_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} |")
+            out.append("")
+        if "ab" in kinds:
+            out.append(f"| rollout.py | fuzzy.py | mode | batch | steps/s (median) | steps/s (best) | compile s |\n|---|---|---|---:|---:|---:|---:|")
+            for r in rows:
+                if r["kind"] == "ab":
+                    label = lambda v: f"{r['rev']}" if v == "old" else "new"  # noqa: E731
+                    out.append(f"| {label(r['rollout'])} | {label(r['fuzzy'])} | {r['mode']} | {r['batch']} | {_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {r['compile_s']:.2f} |")
+            out.append("")
+        rollouts = [r for r in rows if r["kind"] == "rollout"]
+        if rollouts:
+            out.append("| controller | defuzz | integrator | dtype | batch | horizon | mode | steps/s (median) | steps/s (best) | compile s | CPU util |\n|---|---|---|---|---:|---:|---|---:|---:|---:|---:|")
+            for r in rollouts:
+                out.append(
+                    f"| {r['controller']} | {r['defuzz'] or '-'} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {r['mode']} | "
+                    f"{_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {r['compile_s']:.2f} | {r['cpu_util']:.2f} |"
+                )
+            out.append("")
+        skipped = [r for r in rows if r["kind"] == "skipped"]
+        for r in skipped:
+            out.append(f"- skipped {r['config']}: {r['reason']}")
+    return "\n".join(out)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--section", nargs="+", choices=SECTIONS + ("all",), default=["all"], help="what to run (default all)")
+    p.add_argument("--out", default=None, help="also write the rows as one JSON document here")
+    p.add_argument("--tables", nargs="+", default=None, metavar="FILE", help="print Markdown tables of result documents and exit")
+    p.add_argument("--runs", type=int, default=5, help="timed calls per configuration after warm-up (default 5)")
+    p.add_argument("--horizon", type=int, default=1000, help="samples per scenario (default 1000 = 1 s)")
+    p.add_argument("--batch", type=int, default=4096, help="batch of the matrix, memory and baseline sections (default 4096)")
+    p.add_argument("--grad-batch", type=int, default=4096, help="batch of the gradient rows of the matrix (default 4096)")
+    p.add_argument("--batches", type=int, nargs="+", default=list(SWEEP_BATCHES), help="batch sizes of the sweep")
+    p.add_argument("--grad-batches", type=int, nargs="+", default=[1024, 4096, 16384], help="batch sizes of the gradient sweep")
+    p.add_argument("--short-horizon", type=int, default=200, help="horizon of the per-step python-control and scikit-fuzzy baselines")
+    p.add_argument("--host-devices", type=int, default=1, help="JAX CPU devices (one per core): the batch is sharded across them")
+    p.add_argument("--no-intra-op-threads", action="store_true", help="XLA_FLAGS=--xla_cpu_multi_thread_eigen=false")
+    p.add_argument("--ab-rev", default=AB_REV, help=f"git revision of the 'before' modules of the ab section (default {AB_REV})")
+    p.add_argument("--quick", action="store_true", help="small sizes: horizon 200, runs 3, sweep to 16384")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.tables:
+        print(render_tables(args.tables))
+        return 0
+    _setup_jax(args)
+    if args.quick:
+        args.horizon, args.runs, args.short_horizon = 200, 3, 50
+        args.batches = [b for b in args.batches if b <= 16384]
+        args.grad_batches = [1024]
+    sections = SECTIONS if "all" in args.section else tuple(args.section)
+    meta = _meta()
+    emit = Emitter(meta)
+    print(json.dumps({"kind": "meta", **_jsonable(meta)}), flush=True)
+    for section in SECTIONS:
+        if section not in sections:
+            continue
+        if section == "matmul":
+            section_matmul(emit, args.runs)
+        elif section == "flops":
+            section_flops(emit)
+        elif section == "memory":
+            section_memory(emit, args.batch)
+        elif section == "baselines":
+            section_baselines(emit, args.runs, args.batch, args.horizon, args.short_horizon)
+        elif section == "sweep":
+            section_sweep(emit, args.runs, args.horizon, tuple(args.batches), tuple(args.grad_batches))
+        elif section == "matrix":
+            section_matrix(emit, args.runs, args.horizon, args.batch, args.grad_batch)
+        elif section == "ab":
+            section_ab(emit, args.runs, args.horizon, args.batch, 1024, args.ab_rev)
+    meta["loadavg_1min_end"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    if args.out:
+        from jaxflex.fileio import write_json
+
+        write_json(args.out, {"meta": meta, "rows": emit.rows})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root
+    raise SystemExit(main())

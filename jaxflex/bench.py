@@ -1,0 +1,319 @@
+"""Closed-loop throughput benchmark: plant steps per second of batched rollouts.
+
+The edge behind ``jaxflex bench`` (and the measuring core of ``benchmarks/bench_rollout.py``).
+One configuration is a controller, a sampling method, a dtype, a batch of scenarios, a
+horizon and a mode:
+
+* ``"forward"``: ``jit(vmap(rollout(..., output="metrics")))`` over the batch;
+* ``"grad"``: ``jit(value_and_grad)`` of the batch-mean tip ISE with respect to every
+  controller parameter (the whole parameter pytree), through the same rollout.
+
+The scenarios of a batch differ in their initial state (random modal displacements and
+rates around the paper's) and share one tip-force sequence (a 0.5 N, 10 ms pulse at 0.1 s)
+and one sensor-noise sequence, so inputs cost O(T), not O(batch x T), memory. The plant is
+the paper's two-mode arm at 1 kHz, closed over as a constant (as the tuner and the Monte
+Carlo runner do with the nominal plant).
+
+Timing: the first call (trace, compile, run) is timed apart; then ``runs`` calls, each
+ended by ``block_until_ready``. ``steps_per_second`` = batch * horizon / median wall time,
+``steps_per_second_best`` uses the fastest call, ``compile_s`` = first call - median call,
+and ``cpu_util`` = process CPU time / wall time over the timed calls (about the number of
+busy cores; below the core count when other processes compete for the machine).
+
+jaxflex never changes the JAX configuration: float64 rows run inside
+``jax.enable_x64(True)``, and several host devices (one per CPU core) are the caller's
+choice (``jax.config.update("jax_num_cpu_devices", n)`` before first use); when there are
+several devices the batch is sharded across them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import platform
+import time
+from typing import Any, Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflex import beam
+from jaxflex.controllers import DFSParams, OpenLoopParams, combine, dfs, fuzzy, fuzzy_params, open_loop
+from jaxflex.plant import discretize, make_plant
+from jaxflex.rollout import rollout
+from jaxflex.scenarios import Scenario
+
+CONTROLLERS = ("open_loop", "dfs", "fuzzy", "dfs+fuzzy")
+DEFUZZ = ("centroid", "singleton", "smooth")  # the fuzzy part: faithful centroid, singleton, smooth
+INTEGRATORS = ("rk4", "zoh")
+DTYPES = ("float32", "float64")
+MODES = ("forward", "grad")
+SMOOTH_TEMPERATURE = 0.02  # the smooth mode's temperature (the tuner's recommended range 0.01-0.05)
+DT = 1e-3  # s, the paper's 1 kHz
+N_MODES = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchConfig:
+    """One benchmark configuration.
+
+    Attributes:
+      controller: one of ``CONTROLLERS``.
+      defuzz: fuzzy part (``DEFUZZ``): ``"centroid"`` (faithful, exact closed form),
+        ``"singleton"``, or ``"smooth"`` (centroid at ``SMOOTH_TEMPERATURE``). Ignored without
+        a fuzzy part.
+      integrator: ``"rk4"`` or ``"zoh"`` (``plant.discretize``).
+      dtype: ``"float32"`` or ``"float64"``.
+      batch: number of scenarios, >= 1.
+      horizon: samples per scenario, >= 2.
+      mode: ``"forward"`` or ``"grad"``.
+      runs: timed calls after the first, >= 1.
+    """
+
+    controller: str = "dfs+fuzzy"
+    defuzz: str = "centroid"
+    integrator: str = "zoh"
+    dtype: str = "float32"
+    batch: int = 4096
+    horizon: int = 1000
+    mode: str = "forward"
+    runs: int = 5
+
+    def __post_init__(self) -> None:
+        for name, allowed in (("controller", CONTROLLERS), ("defuzz", DEFUZZ), ("integrator", INTEGRATORS), ("dtype", DTYPES), ("mode", MODES)):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}; got {getattr(self, name)!r}")
+        for name, low in (("batch", 1), ("horizon", 2), ("runs", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}; got {value!r}")
+        if self.mode == "grad" and self.controller == "open_loop":
+            raise ValueError("mode='grad' needs controller parameters; the open loop has none")
+
+    @property
+    def has_fuzzy(self) -> bool:
+        return "fuzzy" in self.controller
+
+
+def controller_and_params(controller: str, defuzz: str = "centroid", dtype: Any = jnp.float32) -> tuple[Any, Any]:
+    """The benchmarked controller and its (paper) parameters in ``dtype``.
+
+    DFS: k = 55 N*m/rad, tau = 5 ms (``dfs()`` defaults: nearest-sample ring buffer of 64
+    samples). Fuzzy: k1 = 1.02, k2 = 0.30, k3 = 1.0, the paper's rule table and centres.
+    """
+    scalar = lambda v: jnp.asarray(v, dtype)  # noqa: E731
+    dfs_part = (dfs(DT), DFSParams(scalar(55.0), scalar(0.005)))
+    if defuzz == "smooth":
+        fuzzy_ctrl = fuzzy(temperature=SMOOTH_TEMPERATURE)
+    else:
+        fuzzy_ctrl = fuzzy(defuzz=defuzz)
+    fuzzy_part = (fuzzy_ctrl, fuzzy_params(1.02, 0.30, 1.0, dtype=dtype))
+    if controller == "open_loop":
+        return open_loop(), OpenLoopParams()
+    if controller == "dfs":
+        return dfs_part
+    if controller == "fuzzy":
+        return fuzzy_part
+    if controller == "dfs+fuzzy":
+        return combine(dfs_part[0], fuzzy_part[0]), (dfs_part[1], fuzzy_part[1])
+    raise ValueError(f"controller must be one of {CONTROLLERS}; got {controller!r}")
+
+
+def bench_plant(integrator: str, dtype: Any):
+    """The paper's two-mode arm sampled at 1 ms, in ``dtype``."""
+    params = beam.BeamParams(*(None if v is None else jnp.asarray(v, dtype) for v in beam.BeamParams()))
+    return discretize(make_plant(params, N_MODES), DT, integrator)
+
+
+def bench_inputs_np(batch: int, horizon: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``x0`` [batch, n_x], shared ``force`` [horizon, 1] and ``noise`` [horizon, 2], float64 NumPy.
+
+    x0: modal displacements ~ N(0, (1 mm)^2), modal rates ~ N(0, (10 um/s)^2), hub at rest;
+    member 0 is the paper's printed initial state. force: 0.5 N from 0.1 s for 10 ms.
+    noise: N(0, (10 urad)^2) on the angle and N(0, (1 mrad/s)^2) on the velocity.
+    """
+    rng = np.random.default_rng(seed)
+    n_q = N_MODES + 1
+    x0 = np.zeros((batch, 2 * n_q))
+    x0[:, 1:n_q] = 1e-3 * rng.standard_normal((batch, N_MODES))
+    x0[:, n_q + 1 :] = 1e-5 * rng.standard_normal((batch, N_MODES))
+    x0[0] = 0.0
+    x0[0, 1], x0[0, n_q + 1] = 1e-3, 1e-5
+    force = np.zeros((horizon, 1))
+    start = int(round(0.1 / DT))
+    force[start : start + 10] = 0.5
+    noise = rng.standard_normal((horizon, 2)) * np.array([1e-5, 1e-3])
+    return x0, force, noise
+
+
+def bench_inputs(batch: int, horizon: int, dtype: Any, seed: int = 0) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``bench_inputs_np`` as jnp arrays of ``dtype``."""
+    return tuple(jnp.asarray(a, dtype) for a in bench_inputs_np(batch, horizon, seed))
+
+
+def make_benchmark(cfg: BenchConfig) -> tuple[Callable, tuple]:
+    """The jitted function of one configuration and its arguments (params, x0)."""
+    dtype = jnp.dtype(cfg.dtype)
+    plant = bench_plant(cfg.integrator, dtype)
+    controller, params = controller_and_params(cfg.controller, cfg.defuzz, dtype)
+    x0, force, noise = bench_inputs(cfg.batch, cfg.horizon, dtype)
+    devices = jax.devices()
+    if len(devices) > 1 and cfg.batch % len(devices) == 0:
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+        x0 = jax.device_put(x0, NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch")))
+
+    def metrics(params, x0):
+        one = lambda x: rollout(plant, controller, params, Scenario(x, force, noise), output="metrics")  # noqa: E731
+        return jax.vmap(one)(x0)
+
+    if cfg.mode == "forward":
+        return jax.jit(metrics), (params, x0)
+
+    def loss(params, x0):
+        return jnp.mean(metrics(params, x0).tip_ise)
+
+    return jax.jit(jax.value_and_grad(loss)), (params, x0)
+
+
+def device_info() -> dict[str, Any]:
+    """Device, machine and version fields shared by every row."""
+    dev = jax.devices()[0]
+    info = {
+        "device": dev.platform,
+        "device_kind": dev.device_kind,
+        "n_devices": len(jax.devices()),
+        "jax_version": jax.__version__,
+        "numpy_version": np.__version__,
+        "cpu_model": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "python": platform.python_version(),
+    }
+    if dev.platform == "cpu":
+        info["gpu"] = "no GPU available in this session"
+    return info
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def time_calls(fn: Callable, args: tuple, runs: int) -> dict[str, float]:
+    """First-call and steady-state timings of ``fn(*args)`` (each ended by block_until_ready)."""
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - start
+    walls, cpus = [], []
+    for _ in range(runs):
+        start, cpu = time.perf_counter(), time.process_time()
+        jax.block_until_ready(fn(*args))
+        walls.append(time.perf_counter() - start)
+        cpus.append(time.process_time() - cpu)
+    median = float(np.median(walls))
+    return {
+        "first_call_s": first,
+        "median_s": median,
+        "min_s": float(min(walls)),
+        "compile_s": max(first - median, 0.0),
+        "cpu_util": float(sum(cpus) / sum(walls)),
+        "runs": runs,
+    }
+
+
+def measure(cfg: BenchConfig) -> dict[str, Any]:
+    """Run one configuration; returns its JSON row."""
+    with jax.enable_x64(cfg.dtype == "float64"):
+        fn, args = make_benchmark(cfg)
+        timing = time_calls(fn, args, cfg.runs)
+    steps = cfg.batch * cfg.horizon
+    row = {"kind": "rollout", **dataclasses.asdict(cfg)}
+    if not cfg.has_fuzzy:
+        row["defuzz"] = None
+    row.update(timing)
+    row["steps_per_second"] = steps / timing["median_s"]
+    row["steps_per_second_best"] = steps / timing["min_s"]
+    row.update(device_info())
+    return row
+
+
+def quick_configs() -> list[BenchConfig]:
+    """The quick subset (under two minutes on 2 CPU cores): every controller and both
+    integrators in float32 forward at batch 4096, the fuzzy defuzzifiers, float64 and the
+    gradient of the paper's DFS+fuzzy controller."""
+    cfgs = [BenchConfig(controller=c, integrator=i, horizon=500) for c in CONTROLLERS for i in INTEGRATORS]
+    cfgs += [BenchConfig(defuzz=d, horizon=500) for d in ("singleton", "smooth")]
+    cfgs += [BenchConfig(dtype="float64", horizon=500)]
+    cfgs += [BenchConfig(mode="grad", batch=1024, horizon=500, runs=3)]
+    return cfgs
+
+
+def format_table(rows: Sequence[dict[str, Any]]) -> str:
+    """A plain-text table of benchmark rows."""
+    head = f"{'controller':<10} {'defuzz':<9} {'integ':<5} {'dtype':<7} {'batch':>6} {'mode':<7} {'steps/s':>10} {'best':>10} {'compile s':>9} {'cpu util':>8}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(
+            f"{r['controller']:<10} {r['defuzz'] or '-':<9} {r['integrator']:<5} {r['dtype']:<7} {r['batch']:>6} {r['mode']:<7} "
+            f"{r['steps_per_second']:>10.3g} {r['steps_per_second_best']:>10.3g} {r['compile_s']:>9.2f} {r['cpu_util']:>8.2f}"
+        )
+    if rows:
+        r = rows[0]
+        lines.append(f"device: {r['device']} ({r['device_kind']}, {r['n_devices']} device(s)), {r['cpu_model']}, jax {r['jax_version']}")
+        if "gpu" in r:
+            lines.append(f"GPU: {r['gpu']}")
+    return "\n".join(lines)
+
+
+def run_bench(json_path: str | os.PathLike | None = None, quick: bool = True, *, configs: Sequence[BenchConfig] | None = None, progress: Callable[[str], None] | None = print) -> list[dict[str, Any]]:
+    """Run the benchmark; print a table; optionally write one JSON object per line.
+
+    Args:
+      json_path: file for the rows (JSON Lines: one object per configuration), or None.
+      quick: the quick subset (``quick_configs``, under two minutes on 2 cores); False adds
+        the batch sweep of the paper's DFS+fuzzy controller (1 .. 65536) and float64 for
+        every controller (several minutes). ``benchmarks/bench_rollout.py`` is the full suite.
+      configs: explicit configurations instead (tests use tiny ones).
+      progress: called with one line per finished configuration and with the table (None:
+        silent).
+
+    Returns:
+      The rows (dicts with at least ``controller``, ``integrator``, ``dtype``, ``batch``,
+      ``mode``, ``steps_per_second``, ``compile_s``, ``device``).
+    """
+    if configs is None:
+        configs = quick_configs()
+        if not quick:
+            configs += [BenchConfig(batch=b) for b in (1, 16, 256, 1024, 16384, 65536)]
+            configs += [BenchConfig(controller=c, dtype="float64") for c in CONTROLLERS]
+    rows = []
+    out = None if json_path is None else open(json_path, "w", encoding="utf-8")
+    try:
+        for cfg in configs:
+            row = measure(cfg)
+            rows.append(row)
+            if out is not None:
+                out.write(json.dumps(_finite(row)) + "\n")
+                out.flush()
+            if progress is not None:
+                progress(f"{cfg.controller}/{row['defuzz'] or '-'} {cfg.integrator} {cfg.dtype} B={cfg.batch} {cfg.mode}: {row['steps_per_second']:.3g} steps/s")
+    finally:
+        if out is not None:
+            out.close()
+    if progress is not None:
+        progress(format_table(rows))
+    return rows
+
+
+def _finite(row: dict[str, Any]) -> dict[str, Any]:
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}

@@ -1,0 +1,72 @@
+"""Benchmark edge: the baselines reproduce jaxflex's closed loop before they are timed, and
+the quick benchmark returns well-formed rows (tiny sizes; the throughput itself is measured by
+``benchmarks/bench_rollout.py``, not asserted here)."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from benchmarks import baselines as bl
+from benchmarks.bench_rollout import RTOL_CONTROL, RTOL_NUMPY, RTOL_SKFUZZY, check_baselines, count_flops
+from jaxflex.bench import BenchConfig, run_bench
+
+ROW_FIELDS = {"controller": str, "integrator": str, "dtype": str, "batch": int, "mode": str, "steps_per_second": float, "compile_s": float, "device": str}
+
+
+def test_baselines_agree_with_jaxflex():
+    rows = check_baselines(batch=3, horizon=120, skfuzzy_horizon=60, control_horizon=60, controllers=("dfs+fuzzy",))
+    by_name = {(r["baseline"], r["defuzz"]): r["max_rel_err"] for r in rows}
+    assert by_name[("numpy", "centroid")] <= RTOL_NUMPY and by_name[("numpy", "singleton")] <= RTOL_NUMPY
+    assert by_name[("python-control", "centroid")] <= RTOL_CONTROL
+    assert by_name[("skfuzzy", "centroid")] <= RTOL_SKFUZZY
+    assert by_name[("skfuzzy", "centroid")] > 0  # a sampled universe is not the closed form
+
+
+def test_numpy_fuzzy_surface_matches_jaxflex_surface():
+    from jaxflex.controllers.fuzzy import fuzzy_params, fuzzy_surface
+
+    rng = np.random.default_rng(0)
+    e, e_dot = rng.uniform(-1.3, 1.3, size=(2, 200))
+    spec = bl.loop_spec("fuzzy")
+    for defuzz in ("centroid", "singleton"):
+        ours = bl.fuzzy_surface_np(e, e_dot, spec._replace(defuzz=defuzz))
+        ref = jax.vmap(lambda a, b: fuzzy_surface(fuzzy_params(), a, b, defuzz=defuzz))(jnp.asarray(e), jnp.asarray(e_dot))
+        np.testing.assert_allclose(ours, np.asarray(ref), rtol=0, atol=1e-14)
+
+
+def test_quick_bench_rows_are_well_formed(tmp_path):
+    configs = [
+        BenchConfig(controller="open_loop", integrator="rk4", batch=4, horizon=16, runs=2),
+        BenchConfig(controller="dfs+fuzzy", defuzz="singleton", dtype="float64", batch=4, horizon=16, runs=2),
+        BenchConfig(controller="dfs", batch=4, horizon=16, mode="grad", runs=2),
+    ]
+    path = tmp_path / "bench.jsonl"
+    rows = run_bench(path, configs=configs, progress=None)
+    lines = path.read_text().splitlines()
+    assert len(rows) == len(lines) == len(configs)
+    for row, line, cfg in zip(rows, lines, configs):
+        parsed = json.loads(line)
+        for field, kind in ROW_FIELDS.items():
+            assert isinstance(parsed[field], kind), (field, parsed[field])
+        assert (parsed["controller"], parsed["integrator"], parsed["dtype"], parsed["batch"], parsed["mode"]) == (cfg.controller, cfg.integrator, cfg.dtype, cfg.batch, cfg.mode)
+        assert parsed["steps_per_second"] > 0 and parsed["compile_s"] >= 0 and parsed["min_s"] <= parsed["median_s"]
+        assert parsed["device"] == jax.devices()[0].platform and parsed["jax_version"] == jax.__version__
+        assert row["steps_per_second"] == pytest.approx(cfg.batch * cfg.horizon / row["median_s"])
+
+
+def test_bench_config_validation():
+    with pytest.raises(ValueError, match="controller must be one of"):
+        BenchConfig(controller="pid")
+    with pytest.raises(ValueError, match="batch must be an integer >= 1"):
+        BenchConfig(batch=0)
+    with pytest.raises(ValueError, match="open loop has none"):
+        BenchConfig(controller="open_loop", mode="grad")
+
+
+def test_flop_count_of_a_known_jaxpr():
+    a = jnp.ones((3, 4))
+    closed = jax.make_jaxpr(lambda a, x: jnp.maximum(a @ x + 1.0, 0.0))(a, jnp.ones(4))
+    assert count_flops(closed.jaxpr) == (2 * 3 * 4 + 3 + 3, 0)
