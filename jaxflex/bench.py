@@ -161,10 +161,12 @@ def make_benchmark(cfg: BenchConfig) -> tuple[Callable, tuple]:
     controller, params = controller_and_params(cfg.controller, cfg.defuzz, dtype)
     x0, force, noise = bench_inputs(cfg.batch, cfg.horizon, dtype)
     devices = jax.devices()
-    if len(devices) > 1 and cfg.batch % len(devices) == 0:
+    sharded = len(devices) > 1 and cfg.batch % len(devices) == 0
+    if sharded:
         from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-        x0 = jax.device_put(x0, NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch")))
+        mesh = Mesh(np.array(devices), ("batch",))
+        x0 = jax.device_put(x0, NamedSharding(mesh, PartitionSpec("batch")))
 
     def metrics(params, x0):
         one = lambda x: rollout(plant, controller, params, Scenario(x, force, noise), output="metrics")  # noqa: E731
@@ -176,7 +178,23 @@ def make_benchmark(cfg: BenchConfig) -> tuple[Callable, tuple]:
     def loss(params, x0):
         return jnp.mean(metrics(params, x0).tip_ise)
 
-    return jax.jit(jax.value_and_grad(loss)), (params, x0)
+    if not sharded:
+        return jax.jit(jax.value_and_grad(loss)), (params, x0)
+
+    # Data parallel: each device differentiates the mean over its own shard, then one psum.
+    # Under plain jit with a sharded batch, the parameter cotangent is reduced over the batch
+    # in every reverse step, and the compiled reverse loop body holds an all-reduce (checked
+    # in its HLO). check_vma=False: the rollout's scan carries start from constants (zeros),
+    # which shard_map's varying-axes check would reject as carries that turn varying.
+    n_dev = len(devices)
+
+    def local(params, x0):
+        value, grad = jax.value_and_grad(loss)(params, x0)
+        return jax.lax.psum(value, "batch") / n_dev, jax.tree.map(lambda g: jax.lax.psum(g, "batch") / n_dev, grad)
+
+    replicated = PartitionSpec()
+    fn = jax.shard_map(local, mesh=mesh, in_specs=(replicated, PartitionSpec("batch")), out_specs=(replicated, replicated), check_vma=False)
+    return jax.jit(fn), (params, x0)
 
 
 def device_info() -> dict[str, Any]:

@@ -74,7 +74,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``jaxflex`` console script."""
     args = _parser().parse_args(argv)
-    if args.x64:
+    if getattr(args, "x64", False):
         import jax
 
         jax.config.update("jax_enable_x64", True)

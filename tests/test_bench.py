@@ -70,3 +70,12 @@ def test_flop_count_of_a_known_jaxpr():
     a = jnp.ones((3, 4))
     closed = jax.make_jaxpr(lambda a, x: jnp.maximum(a @ x + 1.0, 0.0))(a, jnp.ones(4))
     assert count_flops(closed.jaxpr) == (2 * 3 * 4 + 3 + 3, 0)
+
+
+def test_cli_bench_dispatches(monkeypatch, tmp_path):
+    from jaxflex import bench, cli
+
+    calls = []
+    monkeypatch.setattr(bench, "run_bench", lambda json_path, quick=True: calls.append((json_path, quick)))
+    assert cli.main(["bench", "--json", str(tmp_path / "rows.jsonl")]) == 0
+    assert calls == [(str(tmp_path / "rows.jsonl"), True)]
