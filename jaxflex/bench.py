@@ -41,12 +41,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex import beam
-from jaxflex.controllers import DFSParams, OpenLoopParams, combine, dfs, fuzzy, fuzzy_params, open_loop
+from jaxflex.controllers import by_name
+from jaxflex.controllers.registry import NAMES
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario
 
-CONTROLLERS = ("open_loop", "dfs", "fuzzy", "dfs+fuzzy")
+CONTROLLERS = NAMES
 DEFUZZ = ("centroid", "singleton", "smooth")  # the fuzzy part: faithful centroid, singleton, smooth
 INTEGRATORS = ("rk4", "zoh")
 DTYPES = ("float32", "float64")
@@ -102,24 +103,12 @@ def controller_and_params(controller: str, defuzz: str = "centroid", dtype: Any 
     """The benchmarked controller and its (paper) parameters in ``dtype``.
 
     DFS: k = 55 N*m/rad, tau = 5 ms (``dfs()`` defaults: nearest-sample ring buffer of 64
-    samples). Fuzzy: k1 = 1.02, k2 = 0.30, k3 = 1.0, the paper's rule table and centres.
+    samples). Fuzzy: k1 = 1.02, k2 = 0.30, k3 = 1.0, the paper's rule table and centres;
+    ``defuzz="smooth"`` is the centroid at ``SMOOTH_TEMPERATURE``.
     """
-    scalar = lambda v: jnp.asarray(v, dtype)  # noqa: E731
-    dfs_part = (dfs(DT), DFSParams(scalar(55.0), scalar(0.005)))
     if defuzz == "smooth":
-        fuzzy_ctrl = fuzzy(temperature=SMOOTH_TEMPERATURE)
-    else:
-        fuzzy_ctrl = fuzzy(defuzz=defuzz)
-    fuzzy_part = (fuzzy_ctrl, fuzzy_params(1.02, 0.30, 1.0, dtype=dtype))
-    if controller == "open_loop":
-        return open_loop(), OpenLoopParams()
-    if controller == "dfs":
-        return dfs_part
-    if controller == "fuzzy":
-        return fuzzy_part
-    if controller == "dfs+fuzzy":
-        return combine(dfs_part[0], fuzzy_part[0]), (dfs_part[1], fuzzy_part[1])
-    raise ValueError(f"controller must be one of {CONTROLLERS}; got {controller!r}")
+        return by_name(controller, dt=DT, temperature=SMOOTH_TEMPERATURE, dtype=dtype)
+    return by_name(controller, dt=DT, defuzz=defuzz, dtype=dtype)
 
 
 def bench_plant(integrator: str, dtype: Any):

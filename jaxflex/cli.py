@@ -8,6 +8,7 @@ import time
 from typing import Sequence
 
 from jaxflex import fileio
+from jaxflex.controllers.registry import NAMES
 
 
 def _positive_int(text: str) -> int:
@@ -54,7 +55,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--full", action="store_true", help="add the batch sweep and float64 (several minutes)")
 
     mc = sub.add_parser("montecarlo", help="batched Monte Carlo over sampled scenarios: statistics, histograms, percentile bands")
-    mc.add_argument("--controller", choices=("open_loop", "dfs", "fuzzy", "dfs+fuzzy"), default=None, help="controller (default dfs+fuzzy)")
+    mc.add_argument("--controller", choices=NAMES, default=None, help="controller (default dfs+fuzzy)")
     mc.add_argument("--params", default=None, help="tuned.json from `jaxflex tune` (default: the paper's gains)")
     mc.add_argument("--scenarios", type=_positive_int, default=None, help="number of scenarios N (default 10000)")
     mc.add_argument("--chunk", type=_positive_int, default=None, help="scenarios per chunk; memory grows with it (default 4096)")

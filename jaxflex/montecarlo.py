@@ -27,13 +27,13 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxflex import beam, fileio
-from jaxflex.controllers import Controller, DFSParams, OpenLoopParams, combine, dfs, open_loop
-from jaxflex.controllers.fuzzy import fuzzy, fuzzy_params
+from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
+from jaxflex.controllers.registry import NAMES
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, perturbed_params, sample_scenarios, scenario_plant
 
-CONTROLLERS = ("open_loop", "dfs", "fuzzy", "dfs+fuzzy")
+CONTROLLERS = NAMES
 METRICS = {
     "settling_time_s": "settling time of the tip deflection (s; 2 % of its peak, around 0)",
     "peak_tip_deflection_m": "peak |tip deflection| (m)",
@@ -97,16 +97,9 @@ class MCConfig:
 
 
 def controller_and_params(name: str, params: dict, dt: float, capacity: int) -> tuple[Controller, Any]:
-    """The controller ``name`` and its parameters (paper values for missing names)."""
-    dfs_part = (dfs(dt, capacity, interpolation="linear"), DFSParams(float(params.get("k", 55.0)), float(params.get("tau_s", 0.005))))
-    fuzzy_part = (fuzzy(), fuzzy_params(float(params.get("k1", 1.02)), float(params.get("k2", 0.30)), float(params.get("k3", 1.0))))
-    if name == "open_loop":
-        return open_loop(), OpenLoopParams()
-    if name == "dfs":
-        return dfs_part
-    if name == "fuzzy":
-        return fuzzy_part
-    return combine(dfs_part[0], fuzzy_part[0]), (dfs_part[1], fuzzy_part[1])
+    """The controller ``name`` and its parameters (paper values for missing names); DFS reads
+    its ``capacity``-sample buffer with linear interpolation."""
+    return by_name(name, dt=dt, params=params, capacity=capacity, delay="linear")
 
 
 def metric_names(n_modes: int) -> dict[str, str]:

@@ -22,8 +22,9 @@ import jaxflex
 from jaxflex import beam, fileio, plotting
 from jaxflex.analysis import PSDSettings, signal_metrics, samples_at, vibration_reduction_db, welch
 from jaxflex.analysis.metrics import diverged
-from jaxflex.controllers import DFSParams, OpenLoopParams, combine, dfs, open_loop
-from jaxflex.controllers.fuzzy import fuzzy, fuzzy_params, fuzzy_surface
+from jaxflex.controllers import by_name
+from jaxflex.controllers.fuzzy import fuzzy_params, fuzzy_surface
+from jaxflex.controllers.registry import PARAMETERS
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import paper_scenario
@@ -52,14 +53,6 @@ ESTIMATORS = {
     "boxcar-3000": PSDSettings(window="boxcar", nperseg=3000, noverlap=0, detrend="constant"),
 }
 REL_BAND = 0.15
-
-
-def _controllers():
-    return {
-        "open_loop": (open_loop(), OpenLoopParams()),
-        "dfs": (dfs(DT), DFSParams(55.0, 0.005)),
-        "fuzzy": (fuzzy(), fuzzy_params(1.02, 0.30, 1.0)),
-    }
 
 
 def _run_metrics(traj, dt: float) -> dict[str, Any]:
@@ -217,23 +210,22 @@ def load_tuned(path: str | os.PathLike) -> tuple[str, Any, Any, dict[str, float]
     if name not in TUNED_CONTROLLERS or not isinstance(named, dict):
         raise ValueError(f"--params: {path} must hold 'controller' (one of {TUNED_CONTROLLERS}) and 'params'")
     config = data.get("config", {}) if isinstance(data.get("config"), dict) else {}
-    capacity = int(config.get("capacity", 64))
-    delay_kind = config.get("delay", "linear")
-    dfs_controller = dfs(DT, capacity, approximation="pade", pade_order=int(config.get("pade_order", 8))) if delay_kind == "pade" else dfs(DT, capacity, interpolation=delay_kind)
-    needed = {"dfs": ("k", "tau_s"), "fuzzy": ("k1", "k2", "k3"), "dfs+fuzzy": ("k", "tau_s", "k1", "k2", "k3")}[name]
+    needed = PARAMETERS[name]
     missing = [n for n in needed if not isinstance(named.get(n), (int, float))]
     if missing:
         raise ValueError(f"--params: {path} lacks numeric parameter(s) {missing} for {name}")
-    dfs_part = (dfs_controller, DFSParams(float(named["k"]), float(named["tau_s"]))) if "k" in needed else None
-    fuzzy_part = (fuzzy(temperature=float(config.get("fuzzy_temperature", 0.0))), fuzzy_params(float(named["k1"]), float(named["k2"]), float(named["k3"]))) if "k1" in needed else None
-    if name == "dfs":
-        controller, params = dfs_part
-    elif name == "fuzzy":
-        controller, params = fuzzy_part
-    else:
-        controller, params = combine(dfs_part[0], fuzzy_part[0]), (dfs_part[1], fuzzy_part[1])
+    values = {n: float(named[n]) for n in needed}
+    controller, params = by_name(
+        name,
+        dt=DT,
+        params=values,
+        capacity=int(config.get("capacity", 64)),
+        delay=config.get("delay", "linear"),
+        pade_order=int(config.get("pade_order", 8)),
+        temperature=float(config.get("fuzzy_temperature", 0.0)),
+    )
     controller.check(params)
-    return name, controller, params, {n: float(named[n]) for n in needed}
+    return name, controller, params, values
 
 
 def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[str], None] | None = None, params_file: str | os.PathLike | None = None) -> dict[str, Any]:
@@ -267,7 +259,8 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
 
     simulate = jax.jit(rollout, static_argnums=1)
     trajectories, runs = {}, {}
-    for name, (controller, cparams) in _controllers().items():
+    for name in RUNS:
+        controller, cparams = by_name(name, dt=DT)  # the paper's gains
         say(f"simulating {plotting.LABELS[name]}")
         traj = jax.block_until_ready(simulate(plant, controller, cparams, scenario))
         trajectories[name] = traj

@@ -7,14 +7,15 @@ works on ``z`` with ``tau = lo + (hi - lo) * sigmoid(z)``.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.controllers import Controller, DFSParams, combine, dfs
-from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy, fuzzy_params
+from jaxflex.controllers import Controller, DFSParams, by_name, combine
+from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy_params
 
 CONTROLLERS = ("dfs", "fuzzy", "dfs+fuzzy")
 DELAYS = ("linear", "cubic", "pade")
@@ -59,14 +60,10 @@ def check_tau(tau_s: float, dt: float, capacity: int) -> None:
         raise ValueError(f"tau_s must be in [{lo:g}, {hi:g}] s (one sample to the delay buffer capacity of {capacity} samples); got {tau_s}")
 
 
-def _dfs_controller(dt: float, capacity: int, delay: str, pade_order: int) -> Controller:
-    if delay == "pade":
-        return dfs(dt, capacity, approximation="pade", pade_order=pade_order)
-    return dfs(dt, capacity, interpolation=delay)
-
-
 def _dfs_parts(dt: float, capacity: int, delay: str, pade_order: int):
     lo, hi = tau_bounds(dt, capacity)
+    build = functools.partial(by_name, "dfs", dt=dt, capacity=capacity, delay=delay, pade_order=pade_order)
+    controller, paper = build()
 
     def to_physical(raw):
         return DFSParams(jnp.exp(raw["log_k"]), lo + (hi - lo) * jax.nn.sigmoid(raw["tau_z"]))
@@ -81,11 +78,14 @@ def _dfs_parts(dt: float, capacity: int, delay: str, pade_order: int):
         return {"log_k": jnp.log(jnp.asarray(p.k, float)), "tau_z": _logit(jnp.asarray(frac, jnp.asarray(p.k, float).dtype))}
 
     named = lambda p: {"k": float(np.asarray(p.k)), "tau_s": float(np.asarray(p.tau_s))}
-    from_named = lambda d: DFSParams(float(d.get("k", 55.0)), float(d.get("tau_s", 0.005)))
-    return _dfs_controller(dt, capacity, delay, pade_order), to_physical, to_raw, named, from_named, DFSParams(55.0, 0.005)
+    from_named = lambda d: build(params=d)[1]
+    return controller, to_physical, to_raw, named, from_named, paper
 
 
-def _fuzzy_parts(temperature: float):
+def _fuzzy_parts(dt: float, temperature: float):
+    build = functools.partial(by_name, "fuzzy", dt=dt, temperature=temperature)
+    controller, paper = build()
+
     def to_physical(raw):
         base = fuzzy_params()
         dtype = raw["log_k1"].dtype
@@ -104,8 +104,8 @@ def _fuzzy_parts(temperature: float):
         return out
 
     named = lambda p: {name: float(np.asarray(getattr(p, name))) for name in ("k1", "k2", "k3")}
-    from_named = lambda d: fuzzy_params(float(d.get("k1", 1.02)), float(d.get("k2", 0.30)), float(d.get("k3", 1.0)))
-    return fuzzy(temperature=temperature), to_physical, to_raw, named, from_named, fuzzy_params(1.02, 0.30, 1.0)
+    from_named = lambda d: build(params=d)[1]
+    return controller, to_physical, to_raw, named, from_named, paper
 
 
 def tuned_controller(name: str, dt: float = 1e-3, capacity: int = 64, delay: str = "linear", pade_order: int = 8, temperature: float = 0.0) -> TunedController:
@@ -124,9 +124,9 @@ def tuned_controller(name: str, dt: float = 1e-3, capacity: int = 64, delay: str
     if name == "dfs":
         return TunedController(name, *_dfs_parts(dt, capacity, delay, pade_order))
     if name == "fuzzy":
-        return TunedController(name, *_fuzzy_parts(temperature))
+        return TunedController(name, *_fuzzy_parts(dt, temperature))
     if name == "dfs+fuzzy":
-        d, f = _dfs_parts(dt, capacity, delay, pade_order), _fuzzy_parts(temperature)
+        d, f = _dfs_parts(dt, capacity, delay, pade_order), _fuzzy_parts(dt, temperature)
         return TunedController(
             name,
             combine(d[0], f[0]),

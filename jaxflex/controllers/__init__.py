@@ -4,5 +4,6 @@ from jaxflex.controllers.base import Controller, OpenLoopParams, combine, open_l
 from jaxflex.controllers.dfs import DFSParams, dfs
 from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy, fuzzy_params
 from jaxflex.controllers.pd import PDParams, pd
+from jaxflex.controllers.registry import by_name
 
-__all__ = ["Controller", "OpenLoopParams", "combine", "open_loop", "DFSParams", "dfs", "FuzzyParams", "fuzzy", "fuzzy_params", "PDParams", "pd"]
+__all__ = ["Controller", "OpenLoopParams", "combine", "open_loop", "DFSParams", "dfs", "FuzzyParams", "fuzzy", "fuzzy_params", "PDParams", "pd", "by_name"]

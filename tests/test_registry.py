@@ -1,0 +1,116 @@
+"""``jaxflex.controllers.by_name``: each name and option builds the controller one would build
+by hand (same parameters, same torques), bad names are refused with the accepted values, and
+the call sites built on it (bench, Monte Carlo, tuned.json) keep their configurations."""
+
+import json
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxflex import bench, montecarlo, report
+from jaxflex.controllers import DFSParams, OpenLoopParams, by_name, combine, dfs, fuzzy, fuzzy_params, open_loop
+from jaxflex.controllers.registry import NAMES
+from tests.helpers import tree_allclose
+
+DT = 1e-3
+
+
+def torques(controller, params, ys):
+    """The torques of ``controller`` fed the measurements ``ys`` [T, 2], one step at a time."""
+    state = controller.init(params, ys[0])
+    out = []
+    for y in ys:
+        state, u = controller.step(params, state, y)
+        out.append(np.asarray(u))
+    return np.stack(out)
+
+
+def measurements(dtype=jnp.float64):
+    rng = np.random.default_rng(0)
+    return jnp.asarray(rng.uniform(-1.0, 1.0, (12, 2)) * np.array([0.5, 3.0]), dtype)
+
+
+BY_HAND = {
+    "open_loop": ({}, lambda: (open_loop(), OpenLoopParams())),
+    "dfs, paper": ({}, lambda: (dfs(DT), DFSParams(55.0, 0.005))),
+    "dfs, linear": (
+        {"params": {"k": 40.0, "tau_s": 0.0032}, "capacity": 16, "delay": "linear"},
+        lambda: (dfs(DT, 16, interpolation="linear"), DFSParams(40.0, 0.0032)),
+    ),
+    "dfs, cubic": ({"params": {"tau_s": 0.0047}, "delay": "cubic"}, lambda: (dfs(DT, interpolation="cubic"), DFSParams(55.0, 0.0047))),
+    "dfs, pade": ({"delay": "pade", "pade_order": 6}, lambda: (dfs(DT, approximation="pade", pade_order=6), DFSParams(55.0, 0.005))),
+    "fuzzy, paper": ({}, lambda: (fuzzy(), fuzzy_params(1.02, 0.30, 1.0))),
+    "fuzzy, singleton": ({"params": {"k1": 2.0}, "defuzz": "singleton"}, lambda: (fuzzy(defuzz="singleton"), fuzzy_params(2.0, 0.30, 1.0))),
+    "fuzzy, smooth": ({"temperature": 0.02}, lambda: (fuzzy(temperature=0.02), fuzzy_params())),
+    "dfs+fuzzy": (
+        {"params": {"k": 50.0, "k3": 0.5}, "delay": "linear"},
+        lambda: (combine(dfs(DT, interpolation="linear"), fuzzy()), (DFSParams(50.0, 0.005), fuzzy_params(1.02, 0.30, 0.5))),
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(BY_HAND))
+def test_each_name_is_the_controller_built_by_hand(case):
+    options, build = BY_HAND[case]
+    name = case.split(",")[0]
+    controller, params = by_name(name, dt=DT, **options)
+    hand_controller, hand_params = build()
+    tree_allclose(params, hand_params, rtol=0)
+    controller.check(params)
+    ys = measurements()
+    expected = torques(hand_controller, hand_params, ys)
+    np.testing.assert_array_equal(torques(controller, params, ys), expected)
+    if name != "open_loop":
+        assert np.any(expected != 0)  # the measurements do excite the controller
+
+
+def test_dtype_sets_every_parameter_leaf():
+    controller, params = by_name("dfs+fuzzy", dt=DT, dtype=jnp.float32)
+    assert {leaf.dtype for leaf in jax.tree.leaves(params)} == {jnp.dtype(jnp.float32)}
+    hand = (DFSParams(jnp.float32(55.0), jnp.float32(0.005)), fuzzy_params(dtype=jnp.float32))
+    ys = measurements(jnp.float32)
+    np.testing.assert_array_equal(torques(controller, params, ys), torques(combine(dfs(DT), fuzzy()), hand, ys))
+
+
+@pytest.mark.parametrize("name", ["pid", "DFS", "dfs + fuzzy", "", None])
+def test_unknown_names_are_refused_with_the_accepted_ones(name):
+    accepted = "('open_loop', 'dfs', 'fuzzy', 'dfs+fuzzy')"
+    assert str(NAMES) == accepted
+    with pytest.raises(ValueError, match=re.escape(f"name must be one of {accepted}; got {name!r}")):
+        by_name(name, dt=DT)
+
+
+def test_bad_options_are_refused_by_name():
+    with pytest.raises(ValueError, match=re.escape("delay must be one of ('nearest', 'linear', 'cubic', 'pade'); got 'sinc'")):
+        by_name("dfs", dt=DT, delay="sinc")
+    with pytest.raises(ValueError, match=re.escape("params: unknown parameter name(s) ['tau']; accepted: ['k', 'tau_s', 'k1', 'k2', 'k3']")):
+        by_name("dfs", dt=DT, params={"tau": 0.004})
+    with pytest.raises(ValueError, match=re.escape("params['k'] must be a number; got 'fast'")):
+        by_name("dfs", dt=DT, params={"k": "fast"})
+
+
+def test_unused_names_are_ignored():
+    _, params = by_name("dfs", dt=DT, params={"k": 30.0, "k1": 9.0})
+    assert params == DFSParams(30.0, 0.005)
+
+
+def test_call_sites_keep_their_configurations(tmp_path):
+    ys = measurements()
+    # jaxflex bench: nearest-sample DFS, "smooth" is the centroid at SMOOTH_TEMPERATURE, params in dtype
+    controller, params = bench.controller_and_params("dfs+fuzzy", "smooth", jnp.float64)
+    hand = combine(dfs(DT), fuzzy(temperature=bench.SMOOTH_TEMPERATURE)), (DFSParams(jnp.float64(55.0), jnp.float64(0.005)), fuzzy_params())
+    np.testing.assert_array_equal(torques(controller, params, ys), torques(*hand, ys))
+    # Monte Carlo: linear-interpolated DFS with the run's capacity
+    controller, params = montecarlo.controller_and_params("dfs", {"tau_s": 0.0042}, DT, 8)
+    np.testing.assert_array_equal(torques(controller, params, ys), torques(dfs(DT, 8, interpolation="linear"), DFSParams(55.0, 0.0042), ys))
+    # tuned.json: its config picks the delay and the fuzzy temperature
+    path = tmp_path / "tuned.json"
+    named = {"k": 45.0, "tau_s": 0.006, "k1": 1.1, "k2": 0.25, "k3": 0.9}
+    path.write_text(json.dumps({"controller": "dfs+fuzzy", "params": named, "config": {"delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}}))
+    name, controller, params, values = report.load_tuned(path)
+    assert (name, values) == ("dfs+fuzzy", named)
+    hand = combine(dfs(DT, approximation="pade", pade_order=5), fuzzy(temperature=0.03)), (DFSParams(45.0, 0.006), fuzzy_params(1.1, 0.25, 0.9))
+    np.testing.assert_array_equal(torques(controller, params, ys), torques(*hand, ys))
