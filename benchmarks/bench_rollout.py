@@ -14,6 +14,8 @@ Sections (``--section``, default all):
   gradient at a few sizes.
 * ``matrix``: every controller x {rk4, zoh} x {float32, float64} x {forward, grad} at one
   batch size.
+* ``capacity``: DFS and DFS+fuzzy forward with delay buffers of 64 (``dfs()``'s default),
+  16 and 8 samples, for the same 5-sample delay.
 * ``memory``: compiled memory of metrics-only and trajectory rollouts at two horizons.
 * ``flops``: floating-point operations per closed-loop step, counted on the rollout's jaxpr.
 * ``baselines``: NumPy (batch 4096), python-control and scikit-fuzzy (one scenario, short
@@ -38,10 +40,12 @@ import sys
 import time
 from typing import Any, Callable
 
-SECTIONS = ("matmul", "flops", "memory", "baselines", "sweep", "matrix", "ab")
+SECTIONS = ("matmul", "flops", "memory", "baselines", "sweep", "matrix", "capacity", "ab")
+CAPACITIES = (64, 16, 8)  # DFS buffer sizes of the capacity section (the delay is 5 samples)
 AB_REV = "620479b"  # the last commit before the layout changes of rollout.py and fuzzy.py
 SWEEP_BATCHES = (1, 16, 256, 1024, 4096, 16384, 65536, 131072)
-MAX_SWEEP_STEPS = 1.4e8  # cap on batch * horizon of one call in the sweep (memory and time)
+MAX_SWEEP_STEPS = 1.4e8  # default cap on batch * horizon of one call in the sweep (CPU time)
+VARIANT_BATCHES = (1024, 4096, 16384)  # sweep batches of the singleton, smooth and RK4 rows
 RTOL_NUMPY = 1e-10  # float64, same arithmetic in another order (observed ~3e-15)
 RTOL_CONTROL = 1e-10  # python-control: float64, the same maps (observed ~1e-14)
 # scikit-fuzzy integrates the centroid on a sampled universe (2001 points, step 1e-3): each
@@ -80,6 +84,8 @@ def _meta() -> dict[str, Any]:
             "command": " ".join(sys.argv),
         }
     )
+    if jax.devices()[0].platform != "cpu":
+        meta["gpu"] = meta["device_kind"]
     del jax, np
     return meta
 
@@ -347,18 +353,18 @@ def _measure_or_skip(emit: Callable, cfg: Any) -> bool:
         return False
 
 
-def section_sweep(emit: Callable, runs: int, horizon: int, batches: tuple[int, ...], grad_batches: tuple[int, ...]) -> None:
+def section_sweep(emit: Callable, runs: int, horizon: int, batches: tuple[int, ...], grad_batches: tuple[int, ...], variant_batches: tuple[int, ...], max_steps: float) -> None:
     from jaxflex.bench import BenchConfig
 
     for batch in batches:
-        h = horizon if batch * horizon <= MAX_SWEEP_STEPS else max(int(MAX_SWEEP_STEPS // batch), 100)
+        h = horizon if batch * horizon <= max_steps else max(int(max_steps // batch), 100)
         if not _measure_or_skip(emit, BenchConfig(batch=batch, horizon=h, runs=runs)):
             break
     for defuzz in ("singleton", "smooth"):
-        for batch in (1024, 4096, 16384):
+        for batch in variant_batches:
             _measure_or_skip(emit, BenchConfig(defuzz=defuzz, batch=batch, horizon=horizon, runs=runs))
     for integrator in ("rk4",):
-        for batch in (1024, 4096, 16384):
+        for batch in variant_batches:
             _measure_or_skip(emit, BenchConfig(integrator=integrator, batch=batch, horizon=horizon, runs=runs))
     for batch in grad_batches:
         _measure_or_skip(emit, BenchConfig(batch=batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2)))
@@ -376,6 +382,14 @@ def section_matrix(emit: Callable, runs: int, horizon: int, batch: int, grad_bat
                     _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=batch, horizon=horizon, runs=runs))
                     if controller != "open_loop" and integrator == "zoh":
                         _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=grad_batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2)))
+
+
+def section_capacity(emit: Callable, runs: int, horizon: int, batch: int) -> None:
+    from jaxflex.bench import BenchConfig
+
+    for controller in ("dfs", "dfs+fuzzy"):
+        for capacity in CAPACITIES:
+            _measure_or_skip(emit, BenchConfig(controller=controller, capacity=capacity, batch=batch, horizon=horizon, runs=runs))
 
 
 # -- ab: before / after the layout changes ---------------------------------------------------
@@ -505,10 +519,11 @@ def render_tables(paths: list[str]) -> str:
             out.append("")
         rollouts = [r for r in rows if r["kind"] == "rollout"]
         if rollouts:
-            out.append("| controller | defuzz | integrator | dtype | batch | horizon | mode | steps/s (median) | steps/s (best) | compile s | CPU util |\n|---|---|---|---|---:|---:|---|---:|---:|---:|---:|")
+            out.append("| controller | defuzz | DFS buffer | integrator | dtype | batch | horizon | mode | steps/s (median) | steps/s (best) | compile s | CPU util |\n|---|---|---:|---|---|---:|---:|---|---:|---:|---:|---:|")
             for r in rollouts:
+                capacity = r.get("capacity", 64 if "dfs" in r["controller"] else None)  # rows from before the field: the default
                 out.append(
-                    f"| {r['controller']} | {r['defuzz'] or '-'} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {r['mode']} | "
+                    f"| {r['controller']} | {r['defuzz'] or '-'} | {capacity or '-'} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {r['mode']} | "
                     f"{_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {r['compile_s']:.2f} | {r['cpu_util']:.2f} |"
                 )
             out.append("")
@@ -529,6 +544,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--grad-batch", type=int, default=4096, help="batch of the gradient rows of the matrix (default 4096)")
     p.add_argument("--batches", type=int, nargs="+", default=list(SWEEP_BATCHES), help="batch sizes of the sweep")
     p.add_argument("--grad-batches", type=int, nargs="+", default=[1024, 4096, 16384], help="batch sizes of the gradient sweep")
+    p.add_argument("--variant-batches", type=int, nargs="*", default=list(VARIANT_BATCHES), help="batch sizes of the sweep's singleton, smooth and RK4 rows (none: skip them)")
+    p.add_argument("--max-steps", type=float, default=MAX_SWEEP_STEPS, help=f"cap on batch * horizon of one sweep call; larger batches get a shorter horizon (default {MAX_SWEEP_STEPS:g})")
     p.add_argument("--short-horizon", type=int, default=200, help="horizon of the per-step python-control and scikit-fuzzy baselines")
     p.add_argument("--host-devices", type=int, default=1, help="JAX CPU devices (one per core): the batch is sharded across them")
     p.add_argument("--no-intra-op-threads", action="store_true", help="XLA_FLAGS=--xla_cpu_multi_thread_eigen=false")
@@ -546,6 +563,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.horizon, args.runs, args.short_horizon = 200, 3, 50
         args.batches = [b for b in args.batches if b <= 16384]
+        args.variant_batches = [b for b in args.variant_batches if b <= 16384]
         args.grad_batches = [1024]
     sections = SECTIONS if "all" in args.section else tuple(args.section)
     meta = _meta()
@@ -563,9 +581,11 @@ def main(argv: list[str] | None = None) -> int:
         elif section == "baselines":
             section_baselines(emit, args.runs, args.batch, args.horizon, args.short_horizon)
         elif section == "sweep":
-            section_sweep(emit, args.runs, args.horizon, tuple(args.batches), tuple(args.grad_batches))
+            section_sweep(emit, args.runs, args.horizon, tuple(args.batches), tuple(args.grad_batches), tuple(args.variant_batches), args.max_steps)
         elif section == "matrix":
             section_matrix(emit, args.runs, args.horizon, args.batch, args.grad_batch)
+        elif section == "capacity":
+            section_capacity(emit, args.runs, args.horizon, args.batch)
         elif section == "ab":
             section_ab(emit, args.runs, args.horizon, args.batch, 1024, args.ab_rev)
     meta["loadavg_1min_end"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None

@@ -54,6 +54,7 @@ DTYPES = ("float32", "float64")
 MODES = ("forward", "grad")
 SMOOTH_TEMPERATURE = 0.02  # the smooth mode's temperature (the tuner's recommended range 0.01-0.05)
 DT = 1e-3  # s, the paper's 1 kHz
+DELAY_SAMPLES = 5  # the paper's tau = 5 ms at DT
 N_MODES = 2
 
 
@@ -72,6 +73,8 @@ class BenchConfig:
       horizon: samples per scenario, >= 2.
       mode: ``"forward"`` or ``"grad"``.
       runs: timed calls after the first, >= 1.
+      capacity: DFS delay-buffer capacity in samples, >= 5 (the benchmarked delay is 5
+        samples); 64 is ``dfs()``'s default.
     """
 
     controller: str = "dfs+fuzzy"
@@ -82,12 +85,13 @@ class BenchConfig:
     horizon: int = 1000
     mode: str = "forward"
     runs: int = 5
+    capacity: int = 64
 
     def __post_init__(self) -> None:
         for name, allowed in (("controller", CONTROLLERS), ("defuzz", DEFUZZ), ("integrator", INTEGRATORS), ("dtype", DTYPES), ("mode", MODES)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}; got {getattr(self, name)!r}")
-        for name, low in (("batch", 1), ("horizon", 2), ("runs", 1)):
+        for name, low in (("batch", 1), ("horizon", 2), ("runs", 1), ("capacity", DELAY_SAMPLES)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}; got {value!r}")
@@ -99,16 +103,16 @@ class BenchConfig:
         return "fuzzy" in self.controller
 
 
-def controller_and_params(controller: str, defuzz: str = "centroid", dtype: Any = jnp.float32) -> tuple[Any, Any]:
+def controller_and_params(controller: str, defuzz: str = "centroid", dtype: Any = jnp.float32, capacity: int = 64) -> tuple[Any, Any]:
     """The benchmarked controller and its (paper) parameters in ``dtype``.
 
-    DFS: k = 55 N*m/rad, tau = 5 ms (``dfs()`` defaults: nearest-sample ring buffer of 64
-    samples). Fuzzy: k1 = 1.02, k2 = 0.30, k3 = 1.0, the paper's rule table and centres;
+    DFS: k = 55 N*m/rad, tau = 5 ms, nearest-sample ring buffer of ``capacity`` samples
+    (``dfs()``'s default 64). Fuzzy: k1 = 1.02, k2 = 0.30, k3 = 1.0, the paper's rule table and centres;
     ``defuzz="smooth"`` is the centroid at ``SMOOTH_TEMPERATURE``.
     """
     if defuzz == "smooth":
-        return by_name(controller, dt=DT, temperature=SMOOTH_TEMPERATURE, dtype=dtype)
-    return by_name(controller, dt=DT, defuzz=defuzz, dtype=dtype)
+        return by_name(controller, dt=DT, capacity=capacity, temperature=SMOOTH_TEMPERATURE, dtype=dtype)
+    return by_name(controller, dt=DT, capacity=capacity, defuzz=defuzz, dtype=dtype)
 
 
 def bench_plant(integrator: str, dtype: Any):
@@ -147,7 +151,7 @@ def make_benchmark(cfg: BenchConfig) -> tuple[Callable, tuple]:
     """The jitted function of one configuration and its arguments (params, x0)."""
     dtype = jnp.dtype(cfg.dtype)
     plant = bench_plant(cfg.integrator, dtype)
-    controller, params = controller_and_params(cfg.controller, cfg.defuzz, dtype)
+    controller, params = controller_and_params(cfg.controller, cfg.defuzz, dtype, cfg.capacity)
     x0, force, noise = bench_inputs(cfg.batch, cfg.horizon, dtype)
     devices = jax.devices()
     sharded = len(devices) > 1 and cfg.batch % len(devices) == 0
@@ -247,6 +251,8 @@ def measure(cfg: BenchConfig) -> dict[str, Any]:
     row = {"kind": "rollout", **dataclasses.asdict(cfg)}
     if not cfg.has_fuzzy:
         row["defuzz"] = None
+    if "dfs" not in cfg.controller:
+        row["capacity"] = None
     row.update(timing)
     row["steps_per_second"] = steps / timing["median_s"]
     row["steps_per_second_best"] = steps / timing["min_s"]
