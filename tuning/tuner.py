@@ -24,6 +24,7 @@ import optax
 
 from jaxflex import beam, fileio
 from jaxflex.analysis import stability
+from jaxflex.controllers.registry import PARAMETERS
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, sample_scenarios, scenario_plant
@@ -105,11 +106,10 @@ class TuneConfig:
             raise ValueError(f"fuzzy_temperature must be a finite number >= 0; got {t!r}")
         if self.method not in ("rk4", "zoh"):
             raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
-        allowed = {"dfs": {"k", "tau_s"}, "fuzzy": {"k1", "k2", "k3"}}
-        allowed["dfs+fuzzy"] = allowed["dfs"] | allowed["fuzzy"]
-        unknown = sorted(set(self.initial) - allowed[self.controller])
+        allowed = PARAMETERS[self.controller]
+        unknown = sorted(set(self.initial) - set(allowed))
         if unknown:
-            raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed[self.controller])}")
+            raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed)}")
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
