@@ -11,7 +11,8 @@ import pytest
 
 from benchmarks import baselines as bl
 from benchmarks.bench_rollout import RTOL_CONTROL, RTOL_NUMPY, RTOL_SKFUZZY, check_baselines, count_flops
-from jaxflex.bench import BenchConfig, run_bench
+from jaxflex.bench import BenchConfig, controller_and_params, make_benchmark, run_bench
+from tests.helpers import tree_allclose
 
 ROW_FIELDS = {"controller": str, "integrator": str, "dtype": str, "batch": int, "mode": str, "steps_per_second": float, "compile_s": float, "device": str}
 
@@ -64,6 +65,22 @@ def test_bench_config_validation():
         BenchConfig(batch=0)
     with pytest.raises(ValueError, match="open loop has none"):
         BenchConfig(controller="open_loop", mode="grad")
+    with pytest.raises(ValueError, match="capacity must be an integer >= 5"):
+        BenchConfig(capacity=4)  # shorter than the benchmarked 5-sample delay
+
+
+def test_buffer_capacity_reaches_the_controller_and_leaves_the_loop_unchanged():
+    """A smaller DFS buffer holding the same 5-sample delay gives the same closed loop; its
+    state (the buffer) has the configured size."""
+    outputs, buffers = [], []
+    for capacity in (64, 8):
+        cfg = BenchConfig(controller="dfs", batch=3, horizon=40, capacity=capacity)
+        fn, args = make_benchmark(cfg)
+        outputs.append(fn(*args))
+        controller, params = controller_and_params("dfs", capacity=capacity)
+        buffers.append(controller.init(params, jnp.zeros(2, jnp.float32)).buffer.shape)
+    tree_allclose(outputs[0], outputs[1], rtol=0)
+    assert buffers == [(65, 1), (9, 1)]
 
 
 def test_flop_count_of_a_known_jaxpr():
