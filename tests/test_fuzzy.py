@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import skfuzzy
-from jax.test_util import check_grads
+from jax.test_util import check_grads, check_jvp, check_vjp
 
 from jaxflex.controllers.fuzzy import (
     PAPER_RULES,
@@ -223,12 +223,15 @@ def test_singleton_against_numpy():
     c = np.asarray(PAPER_CENTRES)
     consequent_centres = np.array([c[SET_NAMES.index(t)] for _, _, t in PAPER_RULES])
     rng = np.random.default_rng(3)
+    pairs = rng.uniform(-1.0, 1.0, size=(200, 2))
+    # All 200 points in one compiled call (200 op-by-op evaluations take longer).
+    surface = jax.jit(jax.vmap(lambda e, ed: fuzzy_surface(params, e, ed, defuzz="singleton")))
+    ours_all = np.asarray(surface(pairs[:, 0], pairs[:, 1]))
     n_fired = 0
-    for e, ed in rng.uniform(-1.0, 1.0, size=(200, 2)):
+    for (e, ed), ours in zip(pairs, ours_all):
         w = _rule_strengths_np(e, ed, PAPER_RULES, c, c)
         expected = np.sum(w * consequent_centres) / np.sum(w) if np.sum(w) > 0 else 0.0
         n_fired += np.sum(w) > 0
-        ours = float(fuzzy_surface(params, e, ed, defuzz="singleton"))
         np.testing.assert_allclose(ours, expected, rtol=0, atol=ATOL_ROUND)
     assert 100 < n_fired < 200
     # A hand-checked point: e = -0.25 is half NS, half ZE; e_dot = 0 is ZE. Rules 2 (NS,ZE->PS)
@@ -295,7 +298,7 @@ def test_gradients_against_finite_differences(defuzz):
     )
     loss = jax.jit(lambda p: _loss(p, defuzz))
     check_grads(loss, (params,), order=1, modes=["fwd", "rev"], eps=1e-6)
-    grads = jax.jit(jax.grad(loss))(params)
+    grads = jax.grad(loss)(params)  # the reverse pass check_grads compiled, reused
     for leaf in jax.tree.leaves(grads):
         assert np.all(np.isfinite(np.asarray(leaf)))
     assert all(abs(float(g)) > 1e-3 for g in (grads.k1, grads.k2, grads.k3))
@@ -557,15 +560,33 @@ def test_smooth_gradients_against_finite_differences():
         traj = jf.rollout(plant, controller, p, scenario)
         return jnp.mean((traj.y[:, 0] / 0.3) ** 2) + jnp.mean(traj.u[:, 0] ** 2)  # O(1)
 
-    loss = jax.jit(lambda p: (surface_loss(p), closed_loop_loss(p)))
-    check_grads(
-        loss, (params,), order=1, modes=["fwd", "rev"], eps=EPS_FD, atol=ATOL_FD_SMOOTH, rtol=RTOL_FD_SMOOTH
-    )
-    # Every parameter matters (forward mode, one leaf at a time; the jvp is compiled once).
+    tolerances = dict(eps=EPS_FD, atol=ATOL_FD_SMOOTH, rtol=RTOL_FD_SMOOTH)
+    # The surface runs op by op: compiling its vmapped forward and reverse programs would take
+    # far longer than running them here.
+    check_grads(surface_loss, (params,), order=1, modes=["fwd", "rev"], **tolerances)
+
+    # The closed loop: one jitted program gives the loss, its forward-mode derivative along a
+    # tangent and its reverse-mode gradient (one compilation rather than one each for the loss,
+    # the jvp and the vjp). check_jvp and check_vjp are what check_grads(order=1) runs.
+    @jax.jit
+    def loop_derivatives(p, tangent):
+        value, derivative = jax.jvp(closed_loop_loss, (p,), (tangent,))
+        return value, derivative, jax.grad(closed_loop_loss)(p)
+
     zeros = jax.tree.map(jnp.zeros_like, params)
+
+    def loop_vjp(p):
+        value, _, grad = loop_derivatives(p, zeros)
+        return value, lambda cotangent: (jax.tree.map(lambda g: g * cotangent, grad),)
+
+    loop_value = lambda p: loop_derivatives(p, zeros)[0]  # noqa: E731
+    loop_jvp = lambda primals, tangents: loop_derivatives(primals[0], tangents[0])[:2]  # noqa: E731
+    check_jvp(loop_value, loop_jvp, (params,), **tolerances)
+    check_vjp(loop_value, loop_vjp, (params,), **tolerances)
+    # Every parameter matters (forward mode, one leaf at a time).
     for name in FuzzyParams._fields:
         tangent = zeros._replace(**{name: jnp.ones_like(getattr(params, name))})
-        _, derivs = jax.jvp(loss, (params,), (tangent,))
+        derivs = (jax.jvp(surface_loss, (params,), (tangent,))[1], loop_derivatives(params, tangent)[1])
         assert all(np.isfinite(float(d)) and abs(float(d)) > 1e-4 for d in derivs), (name, derivs)
 
 

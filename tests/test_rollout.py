@@ -77,9 +77,13 @@ def test_vmap_over_scenarios_equals_loop(plant2):
     key = jax.random.key(0)
     x0s = 1e-3 * jax.random.normal(key, (8, 6))
     scs = jax.vmap(lambda x0: initial_condition(x0, 200))(x0s)
-    batched = jax.vmap(lambda sc: jf.rollout(plant2, dfs(), DFSParams(55.0, 0.005), sc))(scs)
+    batched = jax.jit(jax.vmap(lambda sc: jf.rollout(plant2, dfs(), DFSParams(55.0, 0.005), sc)))(scs)
+    batched = jax.tree.map(np.asarray, batched)
+    # The unbatched rollout, compiled once and called per scenario (an eager rollout would
+    # trace and compile its scan again at every call).
+    single = jax.jit(lambda x0: jf.rollout(plant2, dfs(), DFSParams(55.0, 0.005), initial_condition(x0, 200)))
     for i in range(8):
-        one = jf.rollout(plant2, dfs(), DFSParams(55.0, 0.005), initial_condition(x0s[i], 200))
+        one = single(x0s[i])
         tree_allclose(jax.tree.map(lambda a: a[i], batched), one, rtol=1e-12, atol=ATOL_REORDER)
 
 
@@ -89,29 +93,51 @@ def _tip_ise(plant, params, steps=400):
     return jnp.sum(traj.z[:, 1] ** 2) * 1e-3
 
 
+# Each gradient test below compiles one ``value_and_grad`` and reads both the gradient and the
+# central-difference values of the loss from it (the value is the forward pass of the same
+# program), instead of one compilation for the gradient and eager rollouts for the differences.
+
+
 def test_dfs_gradient_wrt_k_matches_central_difference(plant2):
     k = 55.0
-    g = float(jax.grad(lambda k: _tip_ise(plant2, DFSParams(k, 0.005)))(k))
+    vg = jax.jit(jax.value_and_grad(lambda k: _tip_ise(plant2, DFSParams(k, 0.005))))
+    g = float(vg(k)[1])
     h = 1e-4 * k
-    fd = (float(_tip_ise(plant2, DFSParams(k + h, 0.005))) - float(_tip_ise(plant2, DFSParams(k - h, 0.005)))) / (2 * h)
+    fd = (float(vg(k + h)[0]) - float(vg(k - h)[0])) / (2 * h)
     assert g != 0 and np.isfinite(g)
     np.testing.assert_allclose(g, fd, rtol=RTOL_FD)
 
 
-@pytest.mark.parametrize("field", ["k1", "k2", "k3"])
-def test_fuzzy_gradient_wrt_scaling_factors_matches_central_difference(plant2, field):
-    """At the paper's operating point, 1 s of the paper scenario, float64."""
+FUZZY_FIELDS = ("k1", "k2", "k3")
+
+
+@pytest.fixture(scope="module")
+def fuzzy_tip_ise(plant2):
+    """Jitted value and gradient of the tip ISE w.r.t. (k1, k2, k3), compiled once for the module:
+    1 s of the paper scenario under the paper's fuzzy controller, float64."""
     sc = paper_scenario(plant2, horizon_s=1.0)
 
-    def loss(v):
-        params = fuzzy_params(1.02, 0.30, 1.0)._replace(**{field: v})
+    def loss(k1, k2, k3):
+        params = fuzzy_params(1.02, 0.30, 1.0)._replace(k1=k1, k2=k2, k3=k3)
         traj = jf.rollout(plant2, fuzzy(), params, sc)
         return jnp.sum(traj.z[:, 1] ** 2) * 1e-3
 
-    v = float(getattr(fuzzy_params(1.02, 0.30, 1.0), field))
-    g = float(jax.jit(jax.grad(loss))(v))
+    return jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2)))
+
+
+@pytest.mark.parametrize("field", FUZZY_FIELDS)
+def test_fuzzy_gradient_wrt_scaling_factors_matches_central_difference(fuzzy_tip_ise, field):
+    """At the paper's operating point, 1 s of the paper scenario, float64."""
+    paper = fuzzy_params(1.02, 0.30, 1.0)
+    base = {name: float(getattr(paper, name)) for name in FUZZY_FIELDS}
+
+    def loss(v):
+        return float(fuzzy_tip_ise(*(v if name == field else base[name] for name in FUZZY_FIELDS))[0])
+
+    v = base[field]
+    g = float(fuzzy_tip_ise(*(base[name] for name in FUZZY_FIELDS))[1][FUZZY_FIELDS.index(field)])
     h = 1e-5 * v  # small enough that no membership kink is crossed along the 1000 samples
-    fd = (float(loss(v + h)) - float(loss(v - h))) / (2 * h)
+    fd = (loss(v + h) - loss(v - h)) / (2 * h)
     assert g != 0 and np.isfinite(g)
     np.testing.assert_allclose(g, fd, rtol=RTOL_FD)
 
@@ -122,9 +148,10 @@ def test_gradient_wrt_plant_parameter(plant2):
         return _tip_ise(d, DFSParams(55.0, 0.005), steps=200)
 
     E = 71e9
-    g = float(jax.grad(loss)(E))
+    vg = jax.jit(jax.value_and_grad(loss))
+    g = float(vg(E)[1])
     h = 1e-4 * E
-    fd = (float(loss(E + h)) - float(loss(E - h))) / (2 * h)
+    fd = (float(vg(E + h)[0]) - float(vg(E - h)[0])) / (2 * h)
     np.testing.assert_allclose(g, fd, rtol=RTOL_FD)
 
 
