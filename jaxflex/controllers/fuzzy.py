@@ -372,12 +372,15 @@ def _membership_list(x: jax.typing.ArrayLike, c: jax.Array, t: float) -> list[ja
     operations per set, so that under ``vmap`` each membership is one contiguous batch array."""
     n = c.shape[0]
     x = _clip(x, c[0], c[-1], t)
+    # How far x is across each interval [c_j, c_{j+1}]: the rising edge of set j + 1 and one
+    # minus the falling edge of set j (one division per interval rather than two per set).
+    frac = [(x - c[j]) / (c[j + 1] - c[j]) for j in range(n - 1)]
     out = []
     for j in range(n):
-        left = 2 * c[0] - c[1] if j == 0 else c[j - 1]  # the outer feet are mirrored
-        right = 2 * c[n - 1] - c[n - 2] if j == n - 1 else c[j + 1]
-        rise = (x - left) / (c[j] - left)
-        fall = (right - x) / (right - c[j])
+        # The outer feet are mirrored: set 0 rises from c_0 - (c_1 - c_0), set n - 1 falls to
+        # c_{n-1} + (c_{n-1} - c_{n-2}).
+        rise = 1 + frac[0] if j == 0 else frac[j - 1]
+        fall = 2 - frac[n - 2] if j == n - 1 else 1 - frac[j]
         peak = _min(rise, fall, t)  # <= 1 at T = 0; the smooth min may pass 1 by O(T)
         # T = 0: the faithful triangle (its upper clip is inactive).
         out.append(jnp.maximum(peak, 0) if t == 0 else _clip(peak, 0.0, 1.0, t))
