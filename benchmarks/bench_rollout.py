@@ -543,7 +543,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=4096, help="batch of the matrix, memory and baseline sections (default 4096)")
     p.add_argument("--grad-batch", type=int, default=4096, help="batch of the gradient rows of the matrix (default 4096)")
     p.add_argument("--batches", type=int, nargs="+", default=list(SWEEP_BATCHES), help="batch sizes of the sweep")
-    p.add_argument("--grad-batches", type=int, nargs="+", default=[1024, 4096, 16384], help="batch sizes of the gradient sweep")
+    p.add_argument("--grad-batches", type=int, nargs="*", default=[1024, 4096, 16384], help="batch sizes of the gradient sweep (none: skip it)")
     p.add_argument("--variant-batches", type=int, nargs="*", default=list(VARIANT_BATCHES), help="batch sizes of the sweep's singleton, smooth and RK4 rows (none: skip them)")
     p.add_argument("--max-steps", type=float, default=MAX_SWEEP_STEPS, help=f"cap on batch * horizon of one sweep call; larger batches get a shorter horizon (default {MAX_SWEEP_STEPS:g})")
     p.add_argument("--short-horizon", type=int, default=200, help="horizon of the per-step python-control and scikit-fuzzy baselines")
