@@ -26,6 +26,12 @@ faster under ``vmap`` on CPU than a vector state with ``Ad @ x``):
   outside the loop, and each measured component gets its noise before the components are
   stacked: otherwise the controller's kernel recomputes the next state or reads ``y`` out of
   a stacked ``[batch, 2]`` array, several times slower.
+* A plant closed over by ``jit`` (concrete, as in the Monte Carlo runner, the benchmark and
+  the tuner's nominal plant) is read as NumPy matrices and their exact zeros are skipped:
+  the tip deflection reads 2 of the 6 state components, the hub angle 1, and no component
+  of the next state reads the hub angle but its own. Each kernel then does less and reads
+  fewer arrays (the open loop 1.5x, DFS+fuzzy 1.1-1.2x faster). A traced plant (a batch of
+  plants) keeps every term; both give the same loop (tested).
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxflex.analysis.metrics import DIVERGENCE_THRESHOLD
 from jaxflex.controllers.base import Controller, is_concrete
@@ -146,21 +153,25 @@ def rollout(
 
     n_x = plant.Ad.shape[0]
     steps = scenario.force.shape[0]
+    # A plant closed over by jit (concrete) as NumPy matrices, so that _dot sees their zeros;
+    # a traced plant (a batch of plants) as it is.
+    maps = (plant.Ad, plant.Bd, plant.Ed, plant.C, plant.Cz)
+    Ad, Bd, Ed, C, Cz = (np.asarray(m) for m in maps) if is_concrete(maps) else maps
 
     # The measurement of the next sample from the current one: y[k+1] = C x[k+1] + noise[k+1]
     # = (C Ad) x[k] + (C Bd) u[k] + (C Ed) force[k] + noise[k+1], with the products formed
     # once, outside the loop.
-    next_y = (plant.C @ plant.Ad, plant.C @ plant.Bd, plant.C @ plant.Ed)  # [2, n_x], [2, 1], [2, 1]
+    next_y = (C @ Ad, C @ Bd, C @ Ed)  # [2, n_x], [2, 1], [2, 1]
 
     def advance(x, state, u, force, noise_next):
         """Sample k -> k + 1: the plant under the held u[k], then the controller at k + 1."""
-        x_next = _affine((plant.Ad, plant.Bd, plant.Ed), x, u, force)
+        x_next = _affine((Ad, Bd, Ed), x, u, force)
         y_next = jnp.stack([y_i + noise_next[i] for i, y_i in enumerate(_affine(next_y, x, u, force))])
         state, u_next = controller.step(params, state, y_next)
         return x_next, state, u_next, y_next
 
     x0 = tuple(scenario.x0[i] for i in range(n_x))
-    y0 = jnp.stack(_matvec(plant.C, x0)) + scenario.noise[0]
+    y0 = jnp.stack(_matvec(C, x0)) + scenario.noise[0]
     state1, u0 = controller.step(params, controller.init(params, y0), y0)
     # noise[k + 1] for iteration k; the last iteration's controller step (its u[T] is never
     # used) sees zero noise.
@@ -169,7 +180,7 @@ def rollout(
 
         def body(carry, inputs):
             x, state, u, y = carry
-            record = (jnp.stack(x), u, y, jnp.stack(_matvec(plant.Cz, x)))
+            record = (jnp.stack(x), u, y, jnp.stack(_matvec(Cz, x)))
             return advance(x, state, u, *inputs), record
 
         _, (x, u, y, z) = jax.lax.scan(body, (x0, state1, u0, y0), inputs)
@@ -183,7 +194,7 @@ def rollout(
 
     def metrics_body(carry, inputs):
         x, state, u, k, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x, dft_re, dft_im = carry
-        hub, tip = _dot(plant.Cz[0], x), _dot(plant.Cz[1], x)
+        hub, tip = _dot(Cz[0], x), _dot(Cz[1], x)
         peak = jnp.maximum(peak, jnp.abs(tip))
         last_out = jnp.where(jnp.abs(tip) > settling_band * peak, k, last_out)
         t_k = k.astype(dtype) * dt
@@ -216,10 +227,17 @@ def rollout(
     return RunMetrics(peak, ise_t, iae_t, ise_h, effort, x_end[0], settling, peak_x, diverged, dft_re**2 + dft_im**2)
 
 
-def _dot(row: jax.Array, x: tuple[jax.Array, ...]) -> jax.Array:
-    """``row @ x`` for a state held as a tuple of components, summed left to right."""
-    total = row[0] * x[0]
-    for j in range(1, len(x)):
+def _dot(row: jax.Array | np.ndarray, x: tuple[jax.Array, ...]) -> jax.Array:
+    """``row @ x`` for a state held as a tuple of components, summed left to right.
+
+    The exact zeros of a NumPy ``row`` are skipped: the kernels of a step then read only the
+    components they use (the tip deflection two of six, the hub angle one; no state
+    component depends on the hub angle's value). The sum is the same for finite ``x``; a
+    non-finite component still reaches ``RunMetrics.peak_abs_state``.
+    """
+    terms = [j for j in range(len(x)) if isinstance(row, jax.Array) or row[j] != 0] or [0]
+    total = row[terms[0]] * x[terms[0]]
+    for j in terms[1:]:
         total = total + row[j] * x[j]
     return total
 
