@@ -20,10 +20,11 @@ ended by ``block_until_ready``. ``steps_per_second`` = batch * horizon / median 
 and ``cpu_util`` = process CPU time / wall time over the timed calls (about the number of
 busy cores; below the core count when other processes compete for the machine).
 
-jaxflex never changes the JAX configuration: float64 rows run inside
+This module never changes the JAX configuration: float64 rows run inside
 ``jax.enable_x64(True)``, and several host devices (one per CPU core) are the caller's
-choice (``jax.config.update("jax_num_cpu_devices", n)`` before first use); when there are
-several devices the batch is sharded across them.
+choice (``jax.config.update("jax_num_cpu_devices", n)`` before first use; the ``jaxflex
+bench`` command makes one per core, ``--cpu-devices``); when there are several devices the
+batch is sharded across them.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 Chunk ``i`` holds the scenarios drawn from ``jax.random.fold_in(key(seed), i)``, so every
 scenario is fixed by the seed and its chunk alone, whatever the number of devices or the
 order in which chunks run. Each chunk is one jitted, vmapped ``rollout(output="metrics")``
-with its scenario axis sharded over all local devices (``jax.sharding``); only per-scenario
+with its scenario axis sharded over all local devices (``jax.sharding``; on a CPU the
+``jaxflex montecarlo`` command makes one device per core, ``--cpu-devices``); only per-scenario
 scalar metrics come back, so memory grows with the chunk, not with N x horizon. Each
 chunk's metrics are written atomically to ``chunks/chunk_NNNNNN.npz``; a resumed run skips
 the chunks already on disk. ``summary.json`` is computed from the chunk files at the end.

@@ -96,3 +96,18 @@ def test_cli_bench_dispatches(monkeypatch, tmp_path):
     monkeypatch.setattr(bench, "run_bench", lambda json_path, quick=True: calls.append((json_path, quick)))
     assert cli.main(["bench", "--json", str(tmp_path / "rows.jsonl")]) == 0
     assert calls == [(str(tmp_path / "rows.jsonl"), True)]
+
+
+def test_cli_cpu_devices_cannot_change_once_jax_runs(monkeypatch, tmp_path, capsys):
+    """In a process where JAX already computed, the default keeps its devices and an explicit
+    other count is refused by name (a fresh process: test_montecarlo's device-count test)."""
+    from jaxflex import bench, cli
+
+    monkeypatch.setattr(bench, "run_bench", lambda json_path, quick=True: None)
+    running = jax.device_count("cpu")
+    assert cli.main(["bench", "--cpu-devices", str(running)]) == 0
+    assert cli.main(["bench", "--cpu-devices", str(running + 1)]) == 2
+    assert f"--cpu-devices {running + 1}: JAX already runs in this process with {running} CPU device(s)" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["montecarlo", "--cpu-devices", "0", "--out", str(tmp_path)])
+    assert "--cpu-devices: expected an integer >= 1; got 0" in capsys.readouterr().err

@@ -5,7 +5,6 @@ import json
 import os
 import subprocess
 import sys
-import textwrap
 
 import jax
 import numpy as np
@@ -85,33 +84,39 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
         run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=16, seed=3, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
 
 
-_SCRIPT = textwrap.dedent(
-    """
-    import json, sys
-    import jax
-    jax.config.update("jax_enable_x64", True)
-    from jaxflex.montecarlo import MCConfig, run_montecarlo
-    from jaxflex.scenarios import ScenarioSpec
-    spec = ScenarioSpec(horizon_s=0.3, impulse_max_n=0.5, youngs_modulus_rel=0.1, noise_angle_rad=1e-6)
-    s = run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=16, scenarios=spec), sys.argv[1], progress=False, figures=False)
-    print(json.dumps({"devices": s["devices"], "metrics": s["metrics"], "diverged": s["diverged_fraction"]}))
-    """
-)
+# FULL_CONFIG through the command line, in float64 so that the statistics can be compared to
+# 1e-12 (the order of the additions differs with the number of shards).
+_CLI_CONFIG = """
+controller = "dfs+fuzzy"
+n_scenarios = 70
+chunk = 16
+[scenarios]
+horizon_s = 0.3
+impulse_max_n = 0.5
+youngs_modulus_rel = 0.1
+noise_angle_rad = 1e-6
+"""
 
 
 def test_statistics_do_not_depend_on_the_device_count(tmp_path, full_run):
-    results = {}  # _SCRIPT runs FULL_CONFIG
+    """`jaxflex montecarlo --cpu-devices 4` in a fresh process runs on 4 devices and gives the
+    statistics of the 1-device run (float64, 1e-12: only the order of additions differs)."""
+    (tmp_path / "mc.toml").write_text(_CLI_CONFIG)
+    results = {}
     # This process, when it is a plain single-CPU-device one, has made the 1-device run already
-    # (full_run); otherwise (an accelerator, or XLA flags of its own) a subprocess makes it.
+    # (full_run); otherwise (an accelerator, or XLA flags of its own) the command line makes it.
     in_process = jax.default_backend() == "cpu" and jax.device_count() == 1 and not os.environ.get("XLA_FLAGS")
     if in_process:
-        results[1] = {"devices": full_run["devices"], "metrics": full_run["metrics"], "diverged": full_run["diverged_fraction"]}
+        results[1] = full_run
     for devices in (4,) if in_process else (1, 4):
-        env = {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}", "JAX_PLATFORMS": "cpu"}
-        out = subprocess.run([sys.executable, "-c", _SCRIPT, str(tmp_path / f"d{devices}")], capture_output=True, text=True, env=env, timeout=600)
+        out_dir = tmp_path / f"d{devices}"
+        command = [sys.executable, "-m", "jaxflex.cli", "montecarlo", "--config", str(tmp_path / "mc.toml"), "--x64", "--cpu-devices", str(devices), "--no-progress", "--out", str(out_dir)]
+        out = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
         assert out.returncode == 0, out.stderr
-        results[devices] = json.loads(out.stdout.strip().splitlines()[-1])
+        assert f"on {devices} device(s)" in out.stdout
+        results[devices] = json.loads((out_dir / "summary.json").read_text())
     assert results[1]["devices"] == 1 and results[4]["devices"] == 4
+    assert results[1]["diverged_fraction"] == results[4]["diverged_fraction"]
     for name, stats in results[1]["metrics"].items():
         for key, value in stats.items():
             other = results[4]["metrics"][name][key]
