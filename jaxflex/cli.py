@@ -40,7 +40,7 @@ def _use_cpu_devices(count: int | None) -> None:
     """Give JAX ``count`` CPU devices (``None``: one per usable core) before its first computation.
 
     XLA runs the kernels of one device one after another and splits each across cores; a
-    device per core, each running its own shard of the batch, keeps both cores busy (20-30 %
+    device per core, each running its own shard of the batch, keeps both cores busy (10-20 %
     more forward throughput on the 2-core benchmark machine). ``None`` leaves a device count
     set in ``XLA_FLAGS`` alone, and leaves JAX as it is if it is already running in this
     process (``main`` called from a program).
