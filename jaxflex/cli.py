@@ -116,6 +116,12 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``jaxflex`` console script."""
     args = _parser().parse_args(argv)
+    if hasattr(args, "cpu_devices"):  # bench and montecarlo, before JAX's first computation
+        try:
+            _use_cpu_devices(args.cpu_devices)
+        except ValueError as err:
+            print(f"jaxflex {args.command}: error: {err}", file=sys.stderr)
+            return 2
     if getattr(args, "x64", False):
         import jax
 
@@ -148,11 +154,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "bench":
         from jaxflex.bench import run_bench
 
-        try:
-            _use_cpu_devices(args.cpu_devices)
-        except ValueError as err:
-            print(f"jaxflex bench: error: {err}", file=sys.stderr)
-            return 2
         run_bench(args.json, quick=not args.full)
         return 0
     return 2  # pragma: no cover - argparse enforces the choices
@@ -193,11 +194,6 @@ def _tune(args: argparse.Namespace) -> int:
 def _montecarlo(args: argparse.Namespace) -> int:
     import dataclasses
 
-    try:
-        _use_cpu_devices(args.cpu_devices)
-    except ValueError as err:
-        print(f"jaxflex montecarlo: error: {err}", file=sys.stderr)
-        return 2
     if args.distributed:
         import jax
 
