@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import platform
 import time
@@ -41,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex import beam
+from jaxflex import beam, fileio
 from jaxflex.controllers import by_name
 from jaxflex.controllers.registry import NAMES
 from jaxflex.plant import discretize, make_plant
@@ -293,7 +292,8 @@ def run_bench(json_path: str | os.PathLike | None = None, quick: bool = True, *,
     """Run the benchmark; print a table; optionally write one JSON object per line.
 
     Args:
-      json_path: file for the rows (JSON Lines: one object per configuration), or None.
+      json_path: file for the rows (JSON Lines: one object per configuration), or None;
+        written atomically once every configuration has run.
       quick: the quick subset (``quick_configs``, under two minutes on 2 cores); False adds
         the batch sweep of the paper's DFS+fuzzy controller (1 .. 65536) and float64 for
         every controller (several minutes). ``benchmarks/bench_rollout.py`` is the full suite.
@@ -311,23 +311,13 @@ def run_bench(json_path: str | os.PathLike | None = None, quick: bool = True, *,
             configs += [BenchConfig(batch=b) for b in (1, 16, 256, 1024, 16384, 65536)]
             configs += [BenchConfig(controller=c, dtype="float64") for c in CONTROLLERS]
     rows = []
-    out = None if json_path is None else open(json_path, "w", encoding="utf-8")
-    try:
-        for cfg in configs:
-            row = measure(cfg)
-            rows.append(row)
-            if out is not None:
-                out.write(json.dumps(_finite(row)) + "\n")
-                out.flush()
-            if progress is not None:
-                progress(f"{cfg.controller}/{row['defuzz'] or '-'} {cfg.integrator} {cfg.dtype} B={cfg.batch} {cfg.mode}: {row['steps_per_second']:.3g} steps/s")
-    finally:
-        if out is not None:
-            out.close()
+    for cfg in configs:
+        row = measure(cfg)
+        rows.append(row)
+        if progress is not None:
+            progress(f"{cfg.controller}/{row['defuzz'] or '-'} {cfg.integrator} {cfg.dtype} B={cfg.batch} {cfg.mode}: {row['steps_per_second']:.3g} steps/s")
+    if json_path is not None:  # at the end and atomically: an interrupted run leaves an earlier file whole
+        fileio.write_text(json_path, "".join(json.dumps(fileio.to_jsonable(row), allow_nan=False) + "\n" for row in rows))
     if progress is not None:
         progress(format_table(rows))
     return rows
-
-
-def _finite(row: dict[str, Any]) -> dict[str, Any]:
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}

@@ -3,6 +3,7 @@ the quick benchmark returns well-formed rows (tiny sizes; the throughput itself 
 ``benchmarks/bench_rollout.py``, not asserted here)."""
 
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -56,6 +57,25 @@ def test_quick_bench_rows_are_well_formed(tmp_path):
         assert parsed["steps_per_second"] > 0 and parsed["compile_s"] >= 0 and parsed["min_s"] <= parsed["median_s"]
         assert parsed["device"] == jax.devices()[0].platform and parsed["jax_version"] == jax.__version__
         assert row["steps_per_second"] == pytest.approx(cfg.batch * cfg.horizon / row["median_s"])
+
+
+def test_interrupted_bench_leaves_an_earlier_json_file_whole(monkeypatch, tmp_path):
+    from jaxflex import bench
+
+    path = tmp_path / "bench.jsonl"
+    path.write_text('{"earlier": true}\n')
+    measured = []
+
+    def measure(cfg):
+        if measured:
+            raise KeyboardInterrupt  # the second configuration is interrupted
+        measured.append(cfg)
+        return {"defuzz": None, "steps_per_second": 1.0}
+
+    monkeypatch.setattr(bench, "measure", measure)
+    with pytest.raises(KeyboardInterrupt):
+        run_bench(path, configs=[BenchConfig(batch=4, horizon=16), BenchConfig(batch=8, horizon=16)], progress=None)
+    assert path.read_text() == '{"earlier": true}\n' and os.listdir(tmp_path) == ["bench.jsonl"]
 
 
 def test_bench_config_validation():
