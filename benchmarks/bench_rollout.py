@@ -299,7 +299,7 @@ def check_baselines(batch: int = 8, horizon: int = 300, skfuzzy_horizon: int = 3
     return rows
 
 
-def section_baselines(emit: Callable, runs: int, batch: int, horizon: int, short_horizon: int) -> None:
+def section_baselines(emit: Callable, runs: int, min_time: float, batch: int, horizon: int, short_horizon: int) -> None:
     import jax.numpy as jnp
     import numpy as np
 
@@ -323,7 +323,7 @@ def section_baselines(emit: Callable, runs: int, batch: int, horizon: int, short
             bl.numpy_closed_loop(pa, spec, x0, force, noise)
             walls.append(time.perf_counter() - start)
         emit({"kind": "baseline", "baseline": "numpy", "controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": dtype, "batch": batch, "horizon": horizon, "median_s": float(np.median(walls)), "steps_per_second": batch * horizon / float(np.median(walls)), "steps_per_second_best": batch * horizon / min(walls)})
-        emit({**measure(BenchConfig(dtype=dtype, batch=batch, horizon=horizon, runs=runs)), "kind": "rollout_vs_baseline"})
+        emit({**measure(BenchConfig(dtype=dtype, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time)), "kind": "rollout_vs_baseline"})
     # One scenario: python-control and scikit-fuzzy per step, jaxflex at batch 1 beside them.
     pa = plant64
     x0, force, noise = bench_inputs_np(2, short_horizon)
@@ -336,7 +336,7 @@ def section_baselines(emit: Callable, runs: int, batch: int, horizon: int, short
     wall = time.perf_counter() - start
     emit({"kind": "baseline", "baseline": "skfuzzy", "controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": "float64", "batch": 1, "horizon": short_horizon, "median_s": wall, "steps_per_second": short_horizon / wall, "seconds_per_step": wall / short_horizon})
     for dtype in ("float64", "float32"):
-        emit({**measure(BenchConfig(dtype=dtype, batch=1, horizon=horizon, runs=runs)), "kind": "rollout_vs_baseline"})
+        emit({**measure(BenchConfig(dtype=dtype, batch=1, horizon=horizon, runs=runs, min_time_s=min_time)), "kind": "rollout_vs_baseline"})
 
 
 # -- throughput --------------------------------------------------------------------------------
@@ -353,24 +353,24 @@ def _measure_or_skip(emit: Callable, cfg: Any) -> bool:
         return False
 
 
-def section_sweep(emit: Callable, runs: int, horizon: int, batches: tuple[int, ...], grad_batches: tuple[int, ...], variant_batches: tuple[int, ...], max_steps: float) -> None:
+def section_sweep(emit: Callable, runs: int, min_time: float, horizon: int, batches: tuple[int, ...], grad_batches: tuple[int, ...], variant_batches: tuple[int, ...], max_steps: float) -> None:
     from jaxflex.bench import BenchConfig
 
     for batch in batches:
         h = horizon if batch * horizon <= max_steps else max(int(max_steps // batch), 100)
-        if not _measure_or_skip(emit, BenchConfig(batch=batch, horizon=h, runs=runs)):
+        if not _measure_or_skip(emit, BenchConfig(batch=batch, horizon=h, runs=runs, min_time_s=min_time)):
             break
     for defuzz in ("singleton", "smooth"):
         for batch in variant_batches:
-            _measure_or_skip(emit, BenchConfig(defuzz=defuzz, batch=batch, horizon=horizon, runs=runs))
+            _measure_or_skip(emit, BenchConfig(defuzz=defuzz, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time))
     for integrator in ("rk4",):
         for batch in variant_batches:
-            _measure_or_skip(emit, BenchConfig(integrator=integrator, batch=batch, horizon=horizon, runs=runs))
+            _measure_or_skip(emit, BenchConfig(integrator=integrator, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time))
     for batch in grad_batches:
-        _measure_or_skip(emit, BenchConfig(batch=batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2)))
+        _measure_or_skip(emit, BenchConfig(batch=batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2), min_time_s=min_time))
 
 
-def section_matrix(emit: Callable, runs: int, horizon: int, batch: int, grad_batch: int) -> None:
+def section_matrix(emit: Callable, runs: int, min_time: float, horizon: int, batch: int, grad_batch: int) -> None:
     from jaxflex.bench import CONTROLLERS, BenchConfig
 
     for controller in CONTROLLERS:
@@ -379,17 +379,17 @@ def section_matrix(emit: Callable, runs: int, horizon: int, batch: int, grad_bat
                 for dtype in ("float32", "float64"):
                     if defuzz != "centroid" and (integrator, dtype) != ("zoh", "float32"):
                         continue  # the variants once, in the headline setting
-                    _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=batch, horizon=horizon, runs=runs))
+                    _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time))
                     if controller != "open_loop" and integrator == "zoh":
-                        _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=grad_batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2)))
+                        _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=grad_batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2), min_time_s=min_time))
 
 
-def section_capacity(emit: Callable, runs: int, horizon: int, batch: int) -> None:
+def section_capacity(emit: Callable, runs: int, min_time: float, horizon: int, batch: int) -> None:
     from jaxflex.bench import BenchConfig
 
     for controller in ("dfs", "dfs+fuzzy"):
         for capacity in CAPACITIES:
-            _measure_or_skip(emit, BenchConfig(controller=controller, capacity=capacity, batch=batch, horizon=horizon, runs=runs))
+            _measure_or_skip(emit, BenchConfig(controller=controller, capacity=capacity, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time))
 
 
 # -- ab: before / after the layout changes ---------------------------------------------------
@@ -462,6 +462,14 @@ def _fmt(v: float | None) -> str:
     return "-" if v is None else f"{v:.3g}"
 
 
+def _spread(row: dict[str, Any]) -> str:
+    """The middle 80 % of a row's per-call rates and its number of timed calls ('-' for rows
+    from before these fields)."""
+    if "steps_per_second_p10" not in row:
+        return "-"
+    return f"{_fmt(row['steps_per_second_p10'])}-{_fmt(row['steps_per_second_p90'])} ({row['runs']})"
+
+
 def render_tables(paths: list[str]) -> str:
     """Markdown tables from result documents (``--out`` files)."""
     docs = []
@@ -519,12 +527,12 @@ def render_tables(paths: list[str]) -> str:
             out.append("")
         rollouts = [r for r in rows if r["kind"] == "rollout"]
         if rollouts:
-            out.append("| controller | defuzz | DFS buffer | integrator | dtype | batch | horizon | mode | steps/s (median) | steps/s (best) | compile s | CPU util |\n|---|---|---:|---|---|---:|---:|---|---:|---:|---:|---:|")
+            out.append("| controller | defuzz | DFS buffer | integrator | dtype | batch | horizon | mode | steps/s (median) | steps/s (best) | p10-p90 (calls) | compile s | CPU util |\n|---|---|---:|---|---|---:|---:|---|---:|---:|---:|---:|---:|")
             for r in rollouts:
                 capacity = r.get("capacity", 64 if "dfs" in r["controller"] else None)  # rows from before the field: the default
                 out.append(
                     f"| {r['controller']} | {r['defuzz'] or '-'} | {capacity or '-'} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {r['mode']} | "
-                    f"{_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {r['compile_s']:.2f} | {r['cpu_util']:.2f} |"
+                    f"{_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {_spread(r)} | {r['compile_s']:.2f} | {r['cpu_util']:.2f} |"
                 )
             out.append("")
         skipped = [r for r in rows if r["kind"] == "skipped"]
@@ -533,12 +541,20 @@ def render_tables(paths: list[str]) -> str:
     return "\n".join(out)
 
 
+def _seconds(text: str) -> float:
+    value = float(text)
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds >= 0; got {text}")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--section", nargs="+", choices=SECTIONS + ("all",), default=["all"], help="what to run (default all)")
     p.add_argument("--out", default=None, help="also write the rows as one JSON document here")
     p.add_argument("--tables", nargs="+", default=None, metavar="FILE", help="print Markdown tables of result documents and exit")
     p.add_argument("--runs", type=int, default=5, help="timed calls per configuration after warm-up (default 5)")
+    p.add_argument("--min-time", type=_seconds, default=2.0, help="timed seconds per configuration at least: more calls after --runs until they add up to this (default 2; small batches take milliseconds per call)")
     p.add_argument("--horizon", type=int, default=1000, help="samples per scenario (default 1000 = 1 s)")
     p.add_argument("--batch", type=int, default=4096, help="batch of the matrix, memory and baseline sections (default 4096)")
     p.add_argument("--grad-batch", type=int, default=4096, help="batch of the gradient rows of the matrix (default 4096)")
@@ -561,7 +577,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     _setup_jax(args)
     if args.quick:
-        args.horizon, args.runs, args.short_horizon = 200, 3, 50
+        args.horizon, args.runs, args.short_horizon, args.min_time = 200, 3, 50, 0.5
         args.batches = [b for b in args.batches if b <= 16384]
         args.variant_batches = [b for b in args.variant_batches if b <= 16384]
         args.grad_batches = [1024]
@@ -579,13 +595,13 @@ def main(argv: list[str] | None = None) -> int:
         elif section == "memory":
             section_memory(emit, args.batch)
         elif section == "baselines":
-            section_baselines(emit, args.runs, args.batch, args.horizon, args.short_horizon)
+            section_baselines(emit, args.runs, args.min_time, args.batch, args.horizon, args.short_horizon)
         elif section == "sweep":
-            section_sweep(emit, args.runs, args.horizon, tuple(args.batches), tuple(args.grad_batches), tuple(args.variant_batches), args.max_steps)
+            section_sweep(emit, args.runs, args.min_time, args.horizon, tuple(args.batches), tuple(args.grad_batches), tuple(args.variant_batches), args.max_steps)
         elif section == "matrix":
-            section_matrix(emit, args.runs, args.horizon, args.batch, args.grad_batch)
+            section_matrix(emit, args.runs, args.min_time, args.horizon, args.batch, args.grad_batch)
         elif section == "capacity":
-            section_capacity(emit, args.runs, args.horizon, args.batch)
+            section_capacity(emit, args.runs, args.min_time, args.horizon, args.batch)
         elif section == "ab":
             section_ab(emit, args.runs, args.horizon, args.batch, 1024, args.ab_rev)
     meta["loadavg_1min_end"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None

@@ -73,6 +73,10 @@ class BenchConfig:
       horizon: samples per scenario, >= 2.
       mode: ``"forward"`` or ``"grad"``.
       runs: timed calls after the first, >= 1.
+      min_time_s: keep calling (after ``runs`` calls) until the timed calls add up to this
+        many seconds, >= 0. A call at a small batch takes milliseconds, and a median over a
+        few of them samples the host at one instant; a window of a second or two gives the
+        typical rate on a host whose speed drifts.
       capacity: DFS delay-buffer capacity in samples, >= 5 (the benchmarked delay is 5
         samples); 64 is ``dfs()``'s default.
     """
@@ -86,6 +90,7 @@ class BenchConfig:
     mode: str = "forward"
     runs: int = 5
     capacity: int = 64
+    min_time_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name, allowed in (("controller", CONTROLLERS), ("defuzz", DEFUZZ), ("integrator", INTEGRATORS), ("dtype", DTYPES), ("mode", MODES)):
@@ -95,6 +100,8 @@ class BenchConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}; got {value!r}")
+        if isinstance(self.min_time_s, bool) or not isinstance(self.min_time_s, (int, float)) or not 0 <= self.min_time_s < float("inf"):
+            raise ValueError(f"min_time_s must be a finite number of seconds >= 0; got {self.min_time_s!r}")
         if self.mode == "grad" and self.controller == "open_loop":
             raise ValueError("mode='grad' needs controller parameters; the open loop has none")
 
@@ -220,13 +227,14 @@ def _cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
-def time_calls(fn: Callable, args: tuple, runs: int) -> dict[str, float]:
-    """First-call and steady-state timings of ``fn(*args)`` (each ended by block_until_ready)."""
+def time_calls(fn: Callable, args: tuple, runs: int, min_time_s: float = 0.0) -> dict[str, float]:
+    """First-call and steady-state timings of ``fn(*args)`` (each ended by block_until_ready):
+    at least ``runs`` timed calls, and more until they add up to ``min_time_s`` seconds."""
     start = time.perf_counter()
     jax.block_until_ready(fn(*args))
     first = time.perf_counter() - start
     walls, cpus = [], []
-    for _ in range(runs):
+    while len(walls) < runs or sum(walls) < min_time_s:
         start, cpu = time.perf_counter(), time.process_time()
         jax.block_until_ready(fn(*args))
         walls.append(time.perf_counter() - start)
@@ -236,9 +244,12 @@ def time_calls(fn: Callable, args: tuple, runs: int) -> dict[str, float]:
         "first_call_s": first,
         "median_s": median,
         "min_s": float(min(walls)),
+        "p10_s": float(np.percentile(walls, 10)),
+        "p90_s": float(np.percentile(walls, 90)),
         "compile_s": max(first - median, 0.0),
         "cpu_util": float(sum(cpus) / sum(walls)),
-        "runs": runs,
+        "runs": len(walls),
+        "window_s": float(sum(walls)),
     }
 
 
@@ -246,7 +257,7 @@ def measure(cfg: BenchConfig) -> dict[str, Any]:
     """Run one configuration; returns its JSON row."""
     with jax.enable_x64(cfg.dtype == "float64"):
         fn, args = make_benchmark(cfg)
-        timing = time_calls(fn, args, cfg.runs)
+        timing = time_calls(fn, args, cfg.runs, cfg.min_time_s)
     steps = cfg.batch * cfg.horizon
     row = {"kind": "rollout", **dataclasses.asdict(cfg)}
     if not cfg.has_fuzzy:
@@ -256,6 +267,8 @@ def measure(cfg: BenchConfig) -> dict[str, Any]:
     row.update(timing)
     row["steps_per_second"] = steps / timing["median_s"]
     row["steps_per_second_best"] = steps / timing["min_s"]
+    row["steps_per_second_p10"] = steps / timing["p90_s"]  # the slowest tenth of the calls
+    row["steps_per_second_p90"] = steps / timing["p10_s"]
     row.update(device_info())
     return row
 
@@ -264,10 +277,11 @@ def quick_configs() -> list[BenchConfig]:
     """The quick subset (under two minutes on 2 CPU cores): every controller and both
     integrators in float32 forward at batch 4096, the fuzzy defuzzifiers, float64 and the
     gradient of the paper's DFS+fuzzy controller."""
-    cfgs = [BenchConfig(controller=c, integrator=i, horizon=500) for c in CONTROLLERS for i in INTEGRATORS]
-    cfgs += [BenchConfig(defuzz=d, horizon=500) for d in ("singleton", "smooth")]
-    cfgs += [BenchConfig(dtype="float64", horizon=500)]
-    cfgs += [BenchConfig(mode="grad", batch=1024, horizon=500, runs=3)]
+    quick = {"horizon": 500, "min_time_s": 1.0}
+    cfgs = [BenchConfig(controller=c, integrator=i, **quick) for c in CONTROLLERS for i in INTEGRATORS]
+    cfgs += [BenchConfig(defuzz=d, **quick) for d in ("singleton", "smooth")]
+    cfgs += [BenchConfig(dtype="float64", **quick)]
+    cfgs += [BenchConfig(mode="grad", batch=1024, runs=3, **quick)]
     return cfgs
 
 
@@ -308,8 +322,8 @@ def run_bench(json_path: str | os.PathLike | None = None, quick: bool = True, *,
     if configs is None:
         configs = quick_configs()
         if not quick:
-            configs += [BenchConfig(batch=b) for b in (1, 16, 256, 1024, 16384, 65536)]
-            configs += [BenchConfig(controller=c, dtype="float64") for c in CONTROLLERS]
+            configs += [BenchConfig(batch=b, min_time_s=1.0) for b in (1, 16, 256, 1024, 16384, 65536)]
+            configs += [BenchConfig(controller=c, dtype="float64", min_time_s=1.0) for c in CONTROLLERS]
     rows = []
     for cfg in configs:
         row = measure(cfg)

@@ -4,6 +4,7 @@ the quick benchmark returns well-formed rows (tiny sizes; the throughput itself 
 
 import json
 import os
+import time
 
 import jax
 import jax.numpy as jnp
@@ -87,6 +88,23 @@ def test_bench_config_validation():
         BenchConfig(controller="open_loop", mode="grad")
     with pytest.raises(ValueError, match="capacity must be an integer >= 5"):
         BenchConfig(capacity=4)  # shorter than the benchmarked 5-sample delay
+    for bad in (-0.1, float("inf"), float("nan"), True):
+        with pytest.raises(ValueError, match="min_time_s must be a finite number of seconds >= 0"):
+            BenchConfig(min_time_s=bad)
+
+
+def test_timing_window_calls_until_it_is_filled():
+    from jaxflex.bench import time_calls
+
+    def fn(x):  # about 10 ms a call, whatever the machine
+        time.sleep(0.01)
+        return x
+
+    few = time_calls(fn, (jnp.zeros(()),), runs=2)
+    assert few["runs"] == 2
+    window = time_calls(fn, (jnp.zeros(()),), runs=2, min_time_s=0.2)
+    assert window["window_s"] >= 0.2 and window["runs"] >= 3 and window["runs"] < 40
+    assert window["min_s"] <= window["p10_s"] <= window["median_s"] <= window["p90_s"]
 
 
 def test_buffer_capacity_reaches_the_controller_and_leaves_the_loop_unchanged():
