@@ -3,6 +3,7 @@
 import json
 import os
 import re
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -88,6 +89,16 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
     assert os.listdir(tmp_path) == ["results.json"]
     fileio.write_json(path, {"x": float("nan"), "y": np.float32(2.5), "z": np.arange(2)})
     assert json.loads(path.read_text()) == {"x": None, "y": 2.5, "z": [0, 1]}
+
+
+def test_atomic_writes_get_the_permissions_of_a_plain_write(tmp_path):
+    plain, atomic = tmp_path / "plain.md", tmp_path / "atomic.md"
+    plain.write_text("x")
+    fileio.write_text(atomic, "x")  # new file: the umask's default, not the temporary file's 0o600
+    assert stat.S_IMODE(atomic.stat().st_mode) == stat.S_IMODE(plain.stat().st_mode)
+    atomic.chmod(0o640)
+    fileio.write_text(atomic, "y")  # replacing a file keeps its permissions
+    assert stat.S_IMODE(atomic.stat().st_mode) == 0o640 and atomic.read_text() == "y"
 
 
 def test_readme_quick_start_matches_ci():
