@@ -287,12 +287,13 @@ def quick_configs() -> list[BenchConfig]:
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     """A plain-text table of benchmark rows."""
-    head = f"{'controller':<10} {'defuzz':<9} {'integ':<5} {'dtype':<7} {'batch':>6} {'mode':<7} {'steps/s':>10} {'best':>10} {'compile s':>9} {'cpu util':>8}"
+    head = f"{'controller':<10} {'defuzz':<9} {'integ':<5} {'dtype':<7} {'batch':>6} {'mode':<7} {'steps/s':>10} {'p10-p90 (calls)':>23} {'compile s':>9} {'cpu util':>8}"
     lines = [head, "-" * len(head)]
     for r in rows:
+        spread = f"{r['steps_per_second_p10']:.3g}-{r['steps_per_second_p90']:.3g} ({r['runs']})"
         lines.append(
             f"{r['controller']:<10} {r['defuzz'] or '-':<9} {r['integrator']:<5} {r['dtype']:<7} {r['batch']:>6} {r['mode']:<7} "
-            f"{r['steps_per_second']:>10.3g} {r['steps_per_second_best']:>10.3g} {r['compile_s']:>9.2f} {r['cpu_util']:>8.2f}"
+            f"{r['steps_per_second']:>10.3g} {spread:>23} {r['compile_s']:>9.2f} {r['cpu_util']:>8.2f}"
         )
     if rows:
         r = rows[0]

@@ -13,7 +13,7 @@ import pytest
 
 from benchmarks import baselines as bl
 from benchmarks.bench_rollout import RTOL_CONTROL, RTOL_NUMPY, RTOL_SKFUZZY, check_baselines, count_flops
-from jaxflex.bench import BenchConfig, controller_and_params, make_benchmark, run_bench
+from jaxflex.bench import BenchConfig, controller_and_params, format_table, make_benchmark, run_bench
 from tests.helpers import tree_allclose
 
 ROW_FIELDS = {"controller": str, "integrator": str, "dtype": str, "batch": int, "mode": str, "steps_per_second": float, "compile_s": float, "device": str}
@@ -58,6 +58,11 @@ def test_quick_bench_rows_are_well_formed(tmp_path):
         assert parsed["steps_per_second"] > 0 and parsed["compile_s"] >= 0 and parsed["min_s"] <= parsed["median_s"]
         assert parsed["device"] == jax.devices()[0].platform and parsed["jax_version"] == jax.__version__
         assert row["steps_per_second"] == pytest.approx(cfg.batch * cfg.horizon / row["median_s"])
+        assert row["steps_per_second_p10"] <= row["steps_per_second"] <= row["steps_per_second_p90"] <= row["steps_per_second_best"]
+    table = format_table(rows).splitlines()
+    for row, line in zip(rows, table[2:]):
+        assert line.split()[:2] == [row["controller"], row["defuzz"] or "-"]
+        assert f"{row['steps_per_second_p10']:.3g}-{row['steps_per_second_p90']:.3g} ({row['runs']})" in line
 
 
 def test_interrupted_bench_leaves_an_earlier_json_file_whole(monkeypatch, tmp_path):
