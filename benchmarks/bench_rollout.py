@@ -70,12 +70,12 @@ def _meta() -> dict[str, Any]:
     import jax
     import numpy as np
 
-    from jaxflex.bench import device_info
+    from jaxflex.bench import device_info, usable_cores
 
     meta = device_info()
     meta.update(
         {
-            "affinity_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+            "affinity_cores": usable_cores(),
             "loadavg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
             "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "scipy_version": _version("scipy"),

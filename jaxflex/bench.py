@@ -216,6 +216,14 @@ def device_info() -> dict[str, Any]:
     return info
 
 
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask; all cores off Linux)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def _cpu_model() -> str:
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as f:

@@ -22,13 +22,6 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _usable_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 _CPU_DEVICES_HELP = (
     "JAX CPU devices the batch is sharded over, one per core (default: the cores this process may use; "
     "1: a single device whose kernels XLA splits across cores). Faster forward runs on a multi-core CPU "
@@ -40,8 +33,8 @@ def _use_cpu_devices(count: int | None) -> None:
     """Give JAX ``count`` CPU devices (``None``: one per usable core) before its first computation.
 
     XLA runs the kernels of one device one after another and splits each across cores; a
-    device per core, each running its own shard of the batch, keeps both cores busy (10-20 %
-    more forward throughput on the 2-core benchmark machine). ``None`` leaves a device count
+    device per core, each running its own shard of the batch, keeps both cores busy (more
+    forward throughput on the 2-core benchmark machine: benchmarks/README.md). ``None`` leaves a device count
     set in ``XLA_FLAGS`` alone, and leaves JAX as it is if it is already running in this
     process (``main`` called from a program).
 
@@ -50,10 +43,12 @@ def _use_cpu_devices(count: int | None) -> None:
     """
     import jax
 
+    from jaxflex.bench import usable_cores
+
     if count is None and "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
         return
     try:
-        jax.config.update("jax_num_cpu_devices", count or _usable_cores())
+        jax.config.update("jax_num_cpu_devices", count or usable_cores())
     except RuntimeError:  # JAX has started; its CPU device count is fixed for this process
         running = len(jax.devices("cpu"))
         if count is not None and count != running:
