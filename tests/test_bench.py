@@ -98,6 +98,16 @@ def test_bench_config_validation():
             BenchConfig(min_time_s=bad)
 
 
+def test_bench_script_refuses_a_bad_timing_window(capsys):
+    from benchmarks.bench_rollout import _parser
+
+    assert _parser().parse_args(["--min-time", "0.5"]).min_time == 0.5
+    for bad in ("abc", "-1", "nan", "inf"):
+        with pytest.raises(SystemExit):
+            _parser().parse_args(["--min-time", bad])
+        assert f"--min-time: must be a finite number of seconds >= 0; got {bad}" in capsys.readouterr().err
+
+
 def test_timing_window_calls_until_it_is_filled():
     from jaxflex.bench import time_calls
 
