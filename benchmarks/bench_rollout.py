@@ -538,6 +538,8 @@ def render_tables(paths: list[str]) -> str:
         skipped = [r for r in rows if r["kind"] == "skipped"]
         for r in skipped:
             out.append(f"- skipped {r['config']}: {r['reason']}")
+        if skipped:
+            out.append("")  # a heading right after a list would join it in Markdown
     return "\n".join(out)
 
 

@@ -164,3 +164,20 @@ def test_cli_cpu_devices_cannot_change_once_jax_runs(monkeypatch, tmp_path, caps
     with pytest.raises(SystemExit):
         cli.main(["montecarlo", "--cpu-devices", "0", "--out", str(tmp_path)])
     assert "--cpu-devices: expected an integer >= 1; got 0" in capsys.readouterr().err
+
+
+def test_tables_of_a_skipped_row_end_before_the_next_heading(tmp_path):
+    from benchmarks.bench_rollout import render_tables
+
+    cfg = {"controller": "dfs+fuzzy", "batch": 4194304, "mode": "grad"}
+    meta = dict.fromkeys(("cpu_model", "cpu_count", "affinity_cores", "n_devices", "device_kind", "xla_flags", "jax_version", "numpy_version", "time_utc", "command"), "-")
+    meta["loadavg_1min"] = 0.5
+    docs = []
+    for name in ("a.json", "b.json"):
+        doc = {"meta": meta, "rows": [{"kind": "skipped", "config": cfg, "reason": "JaxRuntimeError: RESOURCE_EXHAUSTED"}]}
+        (tmp_path / name).write_text(json.dumps(doc))
+        docs.append(str(tmp_path / name))
+    lines = render_tables(docs).split("\n")
+    assert any(line.startswith("- skipped") and "RESOURCE_EXHAUSTED" in line for line in lines)
+    heading = lines.index("### b.json")
+    assert lines[heading - 1] == "" and lines[heading - 2].startswith("- skipped")
