@@ -115,3 +115,15 @@ def test_readme_api_tour_runs(tmp_path):
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert result.returncode == 0, result.stderr
     assert "(8, 3000, 3)" in result.stdout
+
+
+def test_reproduce_prints_rounded_figures_beside_the_papers(reproduced):
+    _, res = reproduced
+    freqs_line, db_line = cli._reproduce_summary(res).split("\n")
+    assert freqs_line.startswith("model natural frequencies: ") and freqs_line.endswith("(paper: 16, 55 Hz)")
+    for f in res["model"]["natural_frequencies_hz"]:
+        assert f"{f:.2f}" in freqs_line
+    assert res["psd"]["name"] in db_line
+    dfs, fuzzy = db_line.split(": ", 1)[1].split("; ")
+    assert dfs == "DFS {:.1f}, {:.1f} (paper 123.4, 66.9)".format(*res["vibration_reduction_db"]["dfs"])
+    assert fuzzy == "fuzzy {:.1f}, {:.1f} (paper 102.2, 23.2)".format(*res["vibration_reduction_db"]["fuzzy"])
