@@ -181,28 +181,29 @@ def test_sampled_filter_converges_with_foh_but_not_with_zoh():
 
 def test_python_control_companion_realisation_is_badly_conditioned():
     """control.tf2ss(control.pade(5 ms, N)): an accurate transfer function in float64, but a
-    companion A with entries ~1e27 at N = 8. JAX's expm (16 squarings at most) returns NaN
-    for it; scipy's expm samples it with 3e-5 relative error in the poles at N = 8, and at
-    N = 12 the sampled filter is unstable. The cascade has cond(A) < 1e3 and exactly sampled
-    poles (test_discretize_matches_scipy_cont2discrete)."""
-    for n, bad_radius in ((8, False), (12, True)):
+    companion A with entries ~1e27, which JAX's expm (16 squarings at most) turns into NaN at
+    N = 8. The cascade has cond(A) < 1e3 and exactly sampled poles
+    (test_discretize_matches_scipy_cont2discrete).
+
+    scipy's expm is not asserted on: scipy 1.17 samples the N = 8 companion form with 3e-5
+    relative error in the poles, while scipy 1.18 (on the H100 machine) gets it to 3e-14. A test
+    of another library's accuracy would fail when that library improves."""
+    for n in (8, 12):
         sys = control.tf2ss(control.tf(*control.pade(TAU, n)))
         A, B, C, D = (np.asarray(m, float) for m in (sys.A, sys.B, sys.C, sys.D))
         ours = pade.pade_state_space(TAU, n)
         assert np.linalg.cond(A) > 1e20 and np.linalg.cond(np.asarray(ours.A)) < 1e3
-        block = np.zeros((n + 1, n + 1))
-        block[:n, :n], block[:n, n:] = A * DT, B * DT
-        if n == 8:  # (N = 8 only: the expm compiles once per size, and this size is cached)
-            assert not np.all(np.isfinite(np.asarray(jax.scipy.linalg.expm(jnp.asarray(block)))))
-        radius = np.abs(np.linalg.eigvals(scipy.linalg.expm(block)[:n, :n])).max()
-        exact = np.exp(-pade._poles(n).real * DT / TAU).max()  # what discretize_pade gives (tested above)
-        assert abs(radius - exact) > 1e-6 * exact
-        assert (radius > 1.0) == bad_radius
-        if n == 8:  # the continuous transfer function itself is fine in float64
-            for w in (10.0, 1e3):
-                h_c = (C @ np.linalg.solve(1j * w * np.eye(n) - A, B) + D)[0, 0]
-                h_o = (np.asarray(ours.C) @ np.linalg.solve(1j * w * np.eye(n) - np.asarray(ours.A), np.asarray(ours.B)) + np.asarray(ours.D))[0, 0]
-                np.testing.assert_allclose(h_c, h_o, rtol=1e-12)
+    n = 8  # the expm compiles once per size; this size only
+    sys = control.tf2ss(control.tf(*control.pade(TAU, n)))
+    A, B, C, D = (np.asarray(m, float) for m in (sys.A, sys.B, sys.C, sys.D))
+    block = np.zeros((n + 1, n + 1))
+    block[:n, :n], block[:n, n:] = A * DT, B * DT
+    assert not np.all(np.isfinite(np.asarray(jax.scipy.linalg.expm(jnp.asarray(block)))))
+    ours = pade.pade_state_space(TAU, n)
+    for w in (10.0, 1e3):  # the continuous transfer function itself is fine in float64
+        h_c = (C @ np.linalg.solve(1j * w * np.eye(n) - A, B) + D)[0, 0]
+        h_o = (np.asarray(ours.C) @ np.linalg.solve(1j * w * np.eye(n) - np.asarray(ours.A), np.asarray(ours.B)) + np.asarray(ours.D))[0, 0]
+        np.testing.assert_allclose(h_c, h_o, rtol=1e-12)
 
 
 def test_bad_arguments():
