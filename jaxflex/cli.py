@@ -152,17 +152,28 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _reproduce_summary(results: dict) -> str:
-    """The two lines ``jaxflex reproduce`` prints: frequencies and dB reductions beside the paper's."""
-    from jaxflex.report import PAPER
+    """The two lines ``jaxflex reproduce`` prints: frequencies and dB reductions beside the paper's.
 
-    def values(xs: Sequence[float]) -> str:
-        return ", ".join(f"{x:.1f}" for x in xs)
+    One value per simulated mode; ``n/a`` where a run diverged (``results.json`` holds null).
+    """
+    from jaxflex.report import PAPER, format_value
+
+    def values(xs: Sequence[float | None]) -> str:
+        return ", ".join(format_value(x, ".1f") for x in xs)
+
+    def modes(count: int) -> str:
+        return ", ".join(str(i + 1) for i in range(count))
 
     freqs = ", ".join(f"{f:.2f}" for f in results["model"]["natural_frequencies_hz"][:2])
-    db = results["vibration_reduction_db"]
-    runs = "; ".join(f"{name} {values(db[run])} (paper {values(PAPER[run]['reduction_db'])})" for run, name in (("dfs", "DFS"), ("fuzzy", "fuzzy")))
     paper_freqs = ", ".join(f"{f:g}" for f in PAPER["natural_frequencies_hz"])
-    return f"model natural frequencies: {freqs} Hz (paper: {paper_freqs} Hz)\nvibration reduction at modes 1, 2 (dB, {results['psd']['name']}): {runs}"
+    db = results["vibration_reduction_db"]
+    ours = "; ".join(f"{name} {values(db[run])}" for run, name in (("dfs", "DFS"), ("fuzzy", "fuzzy")))
+    paper = "; ".join(f"{name} {values(PAPER[run]['reduction_db'])}" for run, name in (("dfs", "DFS"), ("fuzzy", "fuzzy")))
+    return (
+        f"model natural frequencies: {freqs} Hz (paper: {paper_freqs} Hz)\n"
+        f"vibration reduction (dB, {results['psd']['name']}) at modes {modes(len(db['dfs']))}: {ours} "
+        f"(paper, modes {modes(len(PAPER['dfs']['reduction_db']))}: {paper})"
+    )
 
 
 def _tune(args: argparse.Namespace) -> int:

@@ -70,7 +70,8 @@ def _run_metrics(traj, dt: float) -> dict[str, Any]:
     return out
 
 
-def _fmt(v: Any, spec: str = ".4g") -> str:
+def format_value(v: Any, spec: str = ".4g") -> str:
+    """``v`` formatted with ``spec``; ``n/a`` for a missing (diverged run) or non-finite value."""
     if v is None or (isinstance(v, float) and not np.isfinite(v)):
         return "n/a"
     return format(v, spec)
@@ -111,13 +112,13 @@ def _report_md(results: dict[str, Any]) -> str:
         amm = model["natural_frequencies_hz"][i] if i < n else None
         exact = model["exact_natural_frequencies_hz"][i] if i < len(model["exact_natural_frequencies_hz"]) else None
         note = "differs: above the pinned-free bound" if (paper is not None and i == 0) else ("differs" if paper is not None else "")
-        lines.append(f"| {i + 1} | {_fmt(paper)} | {_fmt(amm, '.3f')} | {_fmt(exact, '.3f')} | {note} |")
+        lines.append(f"| {i + 1} | {format_value(paper)} | {format_value(amm, '.3f')} | {format_value(exact, '.3f')} | {note} |")
 
     lines += ["", "## Time responses", "", "| run | quantity | paper | jaxflex q1 (m) | jaxflex tip deflection (m) | note |", "|---|---|---|---|---|---|"]
     ol = runs["open_loop"]
     lines.append(
         f"| open loop | range | {PAPER['open_loop_range_m'][0]} .. {PAPER['open_loop_range_m'][1]} m | "
-        f"{_fmt(ol['q1']['min'])} .. {_fmt(ol['q1']['max'])} | {_fmt(ol['tip_deflection_m']['min'])} .. {_fmt(ol['tip_deflection_m']['max'])} | "
+        f"{format_value(ol['q1']['min'])} .. {format_value(ol['q1']['max'])} | {format_value(ol['tip_deflection_m']['min'])} .. {format_value(ol['tip_deflection_m']['max'])} | "
         "differs: signal and normalisation unstated in the paper |"
     )
     for run in ("dfs", "fuzzy"):
@@ -127,12 +128,12 @@ def _report_md(results: dict[str, Any]) -> str:
             lines.append(f"| {label} | all | | diverged | diverged | the closed loop diverged |")
             continue
         lines.append(
-            f"| {label} | settling time | {p['settling_time_s']} s | {_fmt(r['q1']['settling_time_s'], '.3f')} s | "
-            f"{_fmt(r['tip_deflection_m']['settling_time_s'], '.3f')} s | 2 % band around the final value (README) |"
+            f"| {label} | settling time | {p['settling_time_s']} s | {format_value(r['q1']['settling_time_s'], '.3f')} s | "
+            f"{format_value(r['tip_deflection_m']['settling_time_s'], '.3f')} s | 2 % band around the final value (README) |"
         )
         lines.append(
-            f"| {label} | range | {p['min']} .. {p['max']} m | {_fmt(r['q1']['min'])} .. {_fmt(r['q1']['max'])} | "
-            f"{_fmt(r['tip_deflection_m']['min'])} .. {_fmt(r['tip_deflection_m']['max'])} | differs in scale, as the open loop |"
+            f"| {label} | range | {p['min']} .. {p['max']} m | {format_value(r['q1']['min'])} .. {format_value(r['q1']['max'])} | "
+            f"{format_value(r['tip_deflection_m']['min'])} .. {format_value(r['tip_deflection_m']['max'])} | differs in scale, as the open loop |"
         )
 
     names = list(results["vibration_reduction_db_by_estimator"])
@@ -149,8 +150,8 @@ def _report_md(results: dict[str, Any]) -> str:
     ]
     for run in ("dfs", "fuzzy"):
         for m in range(len(results["vibration_reduction_db"][run])):
-            vals = " | ".join(_fmt(results["vibration_reduction_db_by_estimator"][name][run][m], ".1f") for name in names)
-            q1 = _fmt(results["vibration_reduction_db_q1"][run][m], ".1f")
+            vals = " | ".join(format_value(results["vibration_reduction_db_by_estimator"][name][run][m], ".1f") for name in names)
+            q1 = format_value(results["vibration_reduction_db_q1"][run][m], ".1f")
             lines.append(f"| {plotting.LABELS[run]} | {m + 1} | {PAPER[run]['reduction_db'][m]} | {vals} | {q1} |")
     dfs_db, fz_db = results["vibration_reduction_db"]["dfs"], results["vibration_reduction_db"]["fuzzy"]
     ordering = "agrees" if all(a is not None and b is not None and a > b for a, b in zip(dfs_db, fz_db)) else "does not agree"
@@ -178,8 +179,8 @@ def _report_md(results: dict[str, Any]) -> str:
         ]
         for label, params, r in (("paper", paper_gains, runs[base]), ("tuned", tuned["params"], run)):
             lines.append(
-                f"| {label} | {', '.join(f'{k} = {v:.4g}' for k, v in params.items() if isinstance(v, float))} | {_fmt(r['q1']['settling_time_s'], '.3f')} | "
-                f"{_fmt(r['tip_deflection_m']['min'])} .. {_fmt(r['tip_deflection_m']['max'])} | {_fmt(r['tip_deflection_m']['ise'])} |"
+                f"| {label} | {', '.join(f'{k} = {v:.4g}' for k, v in params.items() if isinstance(v, float))} | {format_value(r['q1']['settling_time_s'], '.3f')} | "
+                f"{format_value(r['tip_deflection_m']['min'])} .. {format_value(r['tip_deflection_m']['max'])} | {format_value(r['tip_deflection_m']['ise'])} |"
             )
     return "\n".join(lines) + "\n"
 

@@ -123,7 +123,12 @@ def test_reproduce_prints_rounded_figures_beside_the_papers(reproduced):
     assert freqs_line.startswith("model natural frequencies: ") and freqs_line.endswith("(paper: 16, 55 Hz)")
     for f in res["model"]["natural_frequencies_hz"]:
         assert f"{f:.2f}" in freqs_line
-    assert res["psd"]["name"] in db_line
-    dfs, fuzzy = db_line.split(": ", 1)[1].split("; ")
-    assert dfs == "DFS {:.1f}, {:.1f} (paper 123.4, 66.9)".format(*res["vibration_reduction_db"]["dfs"])
-    assert fuzzy == "fuzzy {:.1f}, {:.1f} (paper 102.2, 23.2)".format(*res["vibration_reduction_db"]["fuzzy"])
+    db = res["vibration_reduction_db"]
+    expected = "DFS {:.1f}, {:.1f}; fuzzy {:.1f}, {:.1f}".format(*db["dfs"], *db["fuzzy"])
+    assert db_line == f"vibration reduction (dB, {res['psd']['name']}) at modes 1, 2: {expected} (paper, modes 1, 2: DFS 123.4, 66.9; fuzzy 102.2, 23.2)"
+
+
+def test_reproduce_summary_of_one_mode_and_a_diverged_run():
+    res = {"model": {"natural_frequencies_hz": [13.3]}, "psd": {"name": "hann-1024"}, "vibration_reduction_db": {"dfs": [60.06], "fuzzy": [None]}}
+    db_line = cli._reproduce_summary(res).split("\n")[1]
+    assert db_line.startswith("vibration reduction (dB, hann-1024) at modes 1: DFS 60.1; fuzzy n/a (paper, modes 1, 2: ")
