@@ -82,12 +82,21 @@ def _meta() -> dict[str, Any]:
             "control_version": _version("control"),
             "skfuzzy_version": _version("skfuzzy"),
             "command": " ".join(sys.argv),
+            "xla_python_client_mem_fraction": os.environ.get("XLA_PYTHON_CLIENT_MEM_FRACTION"),
         }
     )
     if jax.devices()[0].platform != "cpu":
         meta["gpu"] = meta["device_kind"]
     del jax, np
     return meta
+
+
+def _peak_device_bytes() -> int | None:
+    """The most memory the first device held during the run (GPU allocators); None on the CPU."""
+    import jax
+
+    stats = jax.devices()[0].memory_stats()
+    return stats.get("peak_bytes_in_use") if stats else None
 
 
 def _version(module: str) -> str | None:
@@ -470,6 +479,16 @@ def _spread(row: dict[str, Any]) -> str:
     return f"{_fmt(row['steps_per_second_p10'])}-{_fmt(row['steps_per_second_p90'])} ({row['runs']})"
 
 
+def _memory_note(meta: dict[str, Any]) -> str:
+    """The device memory fields of a result file's meta, for its table header ("" when absent)."""
+    notes = []
+    if meta.get("peak_device_bytes"):
+        notes.append(f" Peak device memory {meta['peak_device_bytes'] / 2**30:.1f} GiB.")
+    if meta.get("xla_python_client_mem_fraction"):
+        notes.append(f" XLA_PYTHON_CLIENT_MEM_FRACTION={meta['xla_python_client_mem_fraction']}.")
+    return "".join(notes)
+
+
 def render_tables(paths: list[str]) -> str:
     """Markdown tables from result documents (``--out`` files)."""
     docs = []
@@ -484,7 +503,7 @@ def render_tables(paths: list[str]) -> str:
             f"{meta['cpu_model']}, {meta['cpu_count']} cores ({meta['affinity_cores']} usable by the run), "
             f"{meta['n_devices']} JAX device(s) ({meta['device_kind']}), XLA_FLAGS=`{meta['xla_flags'] or '-'}`, "
             f"jax {meta['jax_version']}, numpy {meta['numpy_version']}, load average at start {meta['loadavg_1min']:.2f}, "
-            f"{meta['time_utc']}. GPU: {meta.get('gpu', '-')}.\n\nCommand: `{meta['command']}`\n"
+            f"{meta['time_utc']}. GPU: {meta.get('gpu', '-')}.{_memory_note(meta)}\n\nCommand: `{meta['command']}`\n"
         )
         kinds = {r["kind"] for r in rows}
         if "matmul" in kinds:
@@ -610,6 +629,7 @@ def main(argv: list[str] | None = None) -> int:
         elif section == "ab":
             section_ab(emit, args.runs, args.horizon, args.batch, 1024, args.ab_rev)
     meta["loadavg_1min_end"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    meta["peak_device_bytes"] = _peak_device_bytes()
     if args.out:
         from jaxflex.fileio import write_json
 

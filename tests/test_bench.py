@@ -181,3 +181,19 @@ def test_tables_of_a_skipped_row_end_before_the_next_heading(tmp_path):
     assert any(line.startswith("- skipped") and "RESOURCE_EXHAUSTED" in line for line in lines)
     heading = lines.index("### b.json")
     assert lines[heading - 1] == "" and lines[heading - 2].startswith("- skipped")
+    assert "Peak device memory" not in render_tables(docs)
+    doc = json.loads((tmp_path / "a.json").read_text())
+    doc["meta"].update(peak_device_bytes=3 * 2**29, xla_python_client_mem_fraction="0.95")
+    (tmp_path / "a.json").write_text(json.dumps(doc))
+    assert "Peak device memory 1.5 GiB. XLA_PYTHON_CLIENT_MEM_FRACTION=0.95." in render_tables(docs[:1])
+
+
+def test_result_meta_records_the_memory_fraction_and_peak(monkeypatch):
+    from benchmarks.bench_rollout import _meta, _peak_device_bytes
+
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.95")
+    assert _meta()["xla_python_client_mem_fraction"] == "0.95"
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION")
+    assert _meta()["xla_python_client_mem_fraction"] is None
+    peak = _peak_device_bytes()
+    assert peak is None if jax.devices()[0].platform == "cpu" else peak > 0
