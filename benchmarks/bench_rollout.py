@@ -308,6 +308,18 @@ def check_baselines(batch: int = 8, horizon: int = 300, skfuzzy_horizon: int = 3
     return rows
 
 
+def _config_maker(runs: int, min_time: float, horizon: int) -> Callable[..., Any]:
+    """``BenchConfig`` with this run's horizon and timing. Gradient rows time half as many calls
+    (at least 2), each being several times slower; the window ``min_time`` applies to both."""
+    from jaxflex.bench import BenchConfig
+
+    def make(**fields: Any) -> Any:
+        calls = max(runs // 2, 2) if fields.get("mode") == "grad" else runs
+        return BenchConfig(**{"horizon": horizon, "runs": calls, "min_time_s": min_time, **fields})
+
+    return make
+
+
 def section_baselines(emit: Callable, runs: int, min_time: float, batch: int, horizon: int, short_horizon: int) -> None:
     import jax.numpy as jnp
     import numpy as np
@@ -315,7 +327,9 @@ def section_baselines(emit: Callable, runs: int, min_time: float, batch: int, ho
     import jax
 
     from benchmarks import baselines as bl
-    from jaxflex.bench import BenchConfig, bench_inputs_np, bench_plant, measure
+    from jaxflex.bench import bench_inputs_np, bench_plant, measure
+
+    config = _config_maker(runs, min_time, horizon)
 
     for row in check_baselines():
         emit(row)
@@ -332,7 +346,7 @@ def section_baselines(emit: Callable, runs: int, min_time: float, batch: int, ho
             bl.numpy_closed_loop(pa, spec, x0, force, noise)
             walls.append(time.perf_counter() - start)
         emit({"kind": "baseline", "baseline": "numpy", "controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": dtype, "batch": batch, "horizon": horizon, "median_s": float(np.median(walls)), "steps_per_second": batch * horizon / float(np.median(walls)), "steps_per_second_best": batch * horizon / min(walls)})
-        emit({**measure(BenchConfig(dtype=dtype, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time)), "kind": "rollout_vs_baseline"})
+        emit({**measure(config(dtype=dtype, batch=batch)), "kind": "rollout_vs_baseline"})
     # One scenario: python-control and scikit-fuzzy per step, jaxflex at batch 1 beside them.
     pa = plant64
     x0, force, noise = bench_inputs_np(2, short_horizon)
@@ -345,7 +359,7 @@ def section_baselines(emit: Callable, runs: int, min_time: float, batch: int, ho
     wall = time.perf_counter() - start
     emit({"kind": "baseline", "baseline": "skfuzzy", "controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": "float64", "batch": 1, "horizon": short_horizon, "median_s": wall, "steps_per_second": short_horizon / wall, "seconds_per_step": wall / short_horizon})
     for dtype in ("float64", "float32"):
-        emit({**measure(BenchConfig(dtype=dtype, batch=1, horizon=horizon, runs=runs, min_time_s=min_time)), "kind": "rollout_vs_baseline"})
+        emit({**measure(config(dtype=dtype, batch=1)), "kind": "rollout_vs_baseline"})
 
 
 # -- throughput --------------------------------------------------------------------------------
@@ -363,42 +377,41 @@ def _measure_or_skip(emit: Callable, cfg: Any) -> bool:
 
 
 def section_sweep(emit: Callable, runs: int, min_time: float, horizon: int, batches: tuple[int, ...], grad_batches: tuple[int, ...], variant_batches: tuple[int, ...], max_steps: float) -> None:
-    from jaxflex.bench import BenchConfig
-
+    config = _config_maker(runs, min_time, horizon)
     for batch in batches:
         h = horizon if batch * horizon <= max_steps else max(int(max_steps // batch), 100)
-        if not _measure_or_skip(emit, BenchConfig(batch=batch, horizon=h, runs=runs, min_time_s=min_time)):
+        if not _measure_or_skip(emit, config(batch=batch, horizon=h)):
             break
     for defuzz in ("singleton", "smooth"):
         for batch in variant_batches:
-            _measure_or_skip(emit, BenchConfig(defuzz=defuzz, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time))
+            _measure_or_skip(emit, config(defuzz=defuzz, batch=batch))
     for integrator in ("rk4",):
         for batch in variant_batches:
-            _measure_or_skip(emit, BenchConfig(integrator=integrator, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time))
+            _measure_or_skip(emit, config(integrator=integrator, batch=batch))
     for batch in grad_batches:
-        _measure_or_skip(emit, BenchConfig(batch=batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2), min_time_s=min_time))
+        _measure_or_skip(emit, config(batch=batch, mode="grad"))
 
 
 def section_matrix(emit: Callable, runs: int, min_time: float, horizon: int, batch: int, grad_batch: int) -> None:
-    from jaxflex.bench import CONTROLLERS, BenchConfig
+    from jaxflex.bench import CONTROLLERS
 
+    config = _config_maker(runs, min_time, horizon)
     for controller in CONTROLLERS:
         for defuzz in ("centroid", "singleton", "smooth") if "fuzzy" in controller else ("centroid",):
             for integrator in ("rk4", "zoh"):
                 for dtype in ("float32", "float64"):
                     if defuzz != "centroid" and (integrator, dtype) != ("zoh", "float32"):
                         continue  # the variants once, in the headline setting
-                    _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time))
+                    _measure_or_skip(emit, config(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=batch))
                     if controller != "open_loop" and integrator == "zoh":
-                        _measure_or_skip(emit, BenchConfig(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=grad_batch, horizon=horizon, mode="grad", runs=max(runs // 2, 2), min_time_s=min_time))
+                        _measure_or_skip(emit, config(controller=controller, defuzz=defuzz, integrator=integrator, dtype=dtype, batch=grad_batch, mode="grad"))
 
 
 def section_capacity(emit: Callable, runs: int, min_time: float, horizon: int, batch: int) -> None:
-    from jaxflex.bench import BenchConfig
-
+    config = _config_maker(runs, min_time, horizon)
     for controller in ("dfs", "dfs+fuzzy"):
         for capacity in CAPACITIES:
-            _measure_or_skip(emit, BenchConfig(controller=controller, capacity=capacity, batch=batch, horizon=horizon, runs=runs, min_time_s=min_time))
+            _measure_or_skip(emit, config(controller=controller, capacity=capacity, batch=batch))
 
 
 # -- ab: before / after the layout changes ---------------------------------------------------
@@ -471,14 +484,6 @@ def _fmt(v: float | None) -> str:
     return "-" if v is None else f"{v:.3g}"
 
 
-def _spread(row: dict[str, Any]) -> str:
-    """The middle 80 % of a row's per-call rates and its number of timed calls ('-' for rows
-    from before these fields)."""
-    if "steps_per_second_p10" not in row:
-        return "-"
-    return f"{_fmt(row['steps_per_second_p10'])}-{_fmt(row['steps_per_second_p90'])} ({row['runs']})"
-
-
 def _memory_note(meta: dict[str, Any]) -> str:
     """The device memory fields of a result file's meta, for its table header ("" when absent)."""
     notes = []
@@ -491,6 +496,8 @@ def _memory_note(meta: dict[str, Any]) -> str:
 
 def render_tables(paths: list[str]) -> str:
     """Markdown tables from result documents (``--out`` files)."""
+    from jaxflex.bench import format_spread
+
     docs = []
     for path in paths:
         with open(path, encoding="utf-8") as f:
@@ -551,7 +558,7 @@ def render_tables(paths: list[str]) -> str:
                 capacity = r.get("capacity", 64 if "dfs" in r["controller"] else None)  # rows from before the field: the default
                 out.append(
                     f"| {r['controller']} | {r['defuzz'] or '-'} | {capacity or '-'} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {r['mode']} | "
-                    f"{_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {_spread(r)} | {r['compile_s']:.2f} | {r['cpu_util']:.2f} |"
+                    f"{_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {format_spread(r)} | {r['compile_s']:.2f} | {r['cpu_util']:.2f} |"
                 )
             out.append("")
         skipped = [r for r in rows if r["kind"] == "skipped"]

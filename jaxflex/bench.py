@@ -56,6 +56,7 @@ SMOOTH_TEMPERATURE = 0.02  # the smooth mode's temperature (the tuner's recommen
 DT = 1e-3  # s, the paper's 1 kHz
 DELAY_SAMPLES = 5  # the paper's tau = 5 ms at DT
 N_MODES = 2
+WINDOW_S = 1.0  # timed seconds per configuration of `jaxflex bench` (BenchConfig.min_time_s)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -285,7 +286,7 @@ def quick_configs() -> list[BenchConfig]:
     """The quick subset (under two minutes on 2 CPU cores): every controller and both
     integrators in float32 forward at batch 4096, the fuzzy defuzzifiers, float64 and the
     gradient of the paper's DFS+fuzzy controller."""
-    quick = {"horizon": 500, "min_time_s": 1.0}
+    quick = {"horizon": 500, "min_time_s": WINDOW_S}
     cfgs = [BenchConfig(controller=c, integrator=i, **quick) for c in CONTROLLERS for i in INTEGRATORS]
     cfgs += [BenchConfig(defuzz=d, **quick) for d in ("singleton", "smooth")]
     cfgs += [BenchConfig(dtype="float64", **quick)]
@@ -293,12 +294,20 @@ def quick_configs() -> list[BenchConfig]:
     return cfgs
 
 
+def format_spread(row: dict[str, Any]) -> str:
+    """A row's middle 80 % of per-call rates and its number of timed calls, as
+    ``p10-p90 (calls)``; ``-`` for rows from before these fields."""
+    if "steps_per_second_p10" not in row:
+        return "-"
+    return f"{row['steps_per_second_p10']:.3g}-{row['steps_per_second_p90']:.3g} ({row['runs']})"
+
+
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     """A plain-text table of benchmark rows."""
     head = f"{'controller':<10} {'defuzz':<9} {'integ':<5} {'dtype':<7} {'batch':>6} {'mode':<7} {'steps/s':>10} {'p10-p90 (calls)':>23} {'compile s':>9} {'cpu util':>8}"
     lines = [head, "-" * len(head)]
     for r in rows:
-        spread = f"{r['steps_per_second_p10']:.3g}-{r['steps_per_second_p90']:.3g} ({r['runs']})"
+        spread = format_spread(r)
         lines.append(
             f"{r['controller']:<10} {r['defuzz'] or '-':<9} {r['integrator']:<5} {r['dtype']:<7} {r['batch']:>6} {r['mode']:<7} "
             f"{r['steps_per_second']:>10.3g} {spread:>23} {r['compile_s']:>9.2f} {r['cpu_util']:>8.2f}"
@@ -331,8 +340,8 @@ def run_bench(json_path: str | os.PathLike | None = None, quick: bool = True, *,
     if configs is None:
         configs = quick_configs()
         if not quick:
-            configs += [BenchConfig(batch=b, min_time_s=1.0) for b in (1, 16, 256, 1024, 16384, 65536)]
-            configs += [BenchConfig(controller=c, dtype="float64", min_time_s=1.0) for c in CONTROLLERS]
+            configs += [BenchConfig(batch=b, min_time_s=WINDOW_S) for b in (1, 16, 256, 1024, 16384, 65536)]
+            configs += [BenchConfig(controller=c, dtype="float64", min_time_s=WINDOW_S) for c in CONTROLLERS]
     rows = []
     for cfg in configs:
         row = measure(cfg)

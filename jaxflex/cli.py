@@ -167,8 +167,9 @@ def _reproduce_summary(results: dict) -> str:
     freqs = ", ".join(f"{f:.2f}" for f in results["model"]["natural_frequencies_hz"][:2])
     paper_freqs = ", ".join(f"{f:g}" for f in PAPER["natural_frequencies_hz"])
     db = results["vibration_reduction_db"]
-    ours = "; ".join(f"{name} {values(db[run])}" for run, name in (("dfs", "DFS"), ("fuzzy", "fuzzy")))
-    paper = "; ".join(f"{name} {values(PAPER[run]['reduction_db'])}" for run, name in (("dfs", "DFS"), ("fuzzy", "fuzzy")))
+    names = {"dfs": "DFS", "fuzzy": "fuzzy"}
+    ours = "; ".join(f"{name} {values(db[run])}" for run, name in names.items())
+    paper = "; ".join(f"{name} {values(PAPER[run]['reduction_db'])}" for run, name in names.items())
     return (
         f"model natural frequencies: {freqs} Hz (paper: {paper_freqs} Hz)\n"
         f"vibration reduction (dB, {results['psd']['name']}) at modes {modes(len(db['dfs']))}: {ours} "

@@ -20,9 +20,9 @@ form whose ``A`` has entries up to 1e27 (condition number 1e27). Its transfer fu
 still accurate in float64, but ``jax.scipy.linalg.expm`` (at most 16 squarings) returns NaN
 for it from N = 3 on (see ``tests/test_pade.py``). scipy 1.17's ``expm`` samples it with
 3e-5 relative error in the poles at N = 8, and the sampled N = 12 filter is unstable; scipy
-1.18 is accurate at N = 8 (not checked at N = 12). Here the poles are computed once per order (NumPy, cached) and each
-real pole or complex pair becomes a *balanced* all-pass section (controllability and
-observability Gramians equal to the identity):
+1.18 is accurate at N = 8 (not checked at N = 12). Here the poles are computed once per order
+(NumPy, cached) and each real pole or complex pair becomes a *balanced* all-pass section
+(controllability and observability Gramians equal to the identity):
 
 * real ``p``: ``A = -p, B = sqrt(2 p), C = sqrt(2 p), D = -1``;
 * pair ``a +- j b``: ``A = [[-2 a, |p|], [-|p|, 0]], B = [2 sqrt(a), 0]^T,
