@@ -98,11 +98,8 @@ class BenchConfig:
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}; got {getattr(self, name)!r}")
         for name, low in (("batch", 1), ("horizon", 2), ("runs", 1), ("capacity", DELAY_SAMPLES)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name} must be an integer >= {low}; got {value!r}")
-        if isinstance(self.min_time_s, bool) or not isinstance(self.min_time_s, (int, float)) or not 0 <= self.min_time_s < float("inf"):
-            raise ValueError(f"min_time_s must be a finite number of seconds >= 0; got {self.min_time_s!r}")
+            _check_int(name, getattr(self, name), low)
+        _check_seconds("min_time_s", self.min_time_s)
         if self.mode == "grad" and self.controller == "open_loop":
             raise ValueError("mode='grad' needs controller parameters; the open loop has none")
 
@@ -236,9 +233,25 @@ def _cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+def _check_int(name: str, value: Any, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ValueError(f"{name} must be an integer >= {low}; got {value!r}")
+
+
+def _check_seconds(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < float("inf"):
+        raise ValueError(f"{name} must be a finite number of seconds >= 0; got {value!r}")
+
+
 def time_calls(fn: Callable, args: tuple, runs: int, min_time_s: float = 0.0) -> dict[str, float]:
     """First-call and steady-state timings of ``fn(*args)`` (each ended by block_until_ready):
-    at least ``runs`` timed calls, and more until they add up to ``min_time_s`` seconds."""
+    at least ``runs`` timed calls (>= 1), and more until they add up to ``min_time_s`` seconds.
+
+    Raises:
+      ValueError: naming ``runs`` or ``min_time_s`` and the accepted range.
+    """
+    _check_int("runs", runs, 1)
+    _check_seconds("min_time_s", min_time_s)
     start = time.perf_counter()
     jax.block_until_ready(fn(*args))
     first = time.perf_counter() - start
