@@ -7,7 +7,7 @@ import json
 import math
 import os
 import tempfile
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
@@ -83,7 +83,10 @@ def read_toml(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def check_keys(values: Any, accepted: Any, what: str) -> None:
-    """Refuse unknown keys of a config table by name, listing the accepted ones."""
+    """Refuse a config table that is not a table, or has unknown keys, by name, listing the
+    accepted ones."""
+    if not isinstance(values, Mapping):
+        raise ValueError(f"{what} must be a table of keys (accepted: {sorted(accepted)}); got {values!r}")
     unknown = sorted(set(values) - set(accepted))
     if unknown:
         raise ValueError(f"unknown {what} key(s) {unknown}; accepted: {sorted(accepted)}")

@@ -41,6 +41,14 @@ def test_reductions_against_numpy():
     assert float(objectives.reduce_losses(losses, ObjectiveSpec(reduction="cvar", cvar_level=0.9))) == pytest.approx(worst4, rel=1e-12)
     smooth = float(objectives.reduce_losses(losses, ObjectiveSpec(reduction="worst", worst_temperature=0.01)))
     assert l.max() - 0.01 * np.log(40) <= smooth <= l.max() + 1e-12
+    # Levels whose tail (1 - level) * B is a whole number average exactly that many losses,
+    # although the product rounds above it in floating point ((1 - 0.7) * 10 = 3.0000000000000004).
+    for level, batch in ((0.7, 10), (0.95, 100), (0.99, 100), (0.7, 1000)):
+        tail = round((1 - level) * batch)
+        values = jnp.arange(float(batch))
+        expected = np.arange(batch)[-tail:].mean()
+        got = float(objectives.reduce_losses(values, ObjectiveSpec(reduction="cvar", cvar_level=level)))
+        assert got == pytest.approx(expected, rel=1e-12), (level, batch)
 
 
 def test_fractional_loop_matrix_reproduces_rollout_and_deflation(plant2):
@@ -62,9 +70,27 @@ def test_fractional_loop_matrix_reproduces_rollout_and_deflation(plant2):
     assert abs(eig_full[i] - 1) < 1e-9
     np.testing.assert_allclose(np.sort_complex(np.delete(eig_full, i)), np.sort_complex(eig_red), atol=1e-7)
     rho = np.abs(eig_red).max()
-    assert float(objectives.spectral_radius(reduced)) == pytest.approx(rho, rel=1e-12)
-    smooth = float(objectives.log_spectral_radius_smooth(reduced))
-    assert np.log(rho) <= smooth + 1e-12 and smooth - np.log(rho) < 1e-5  # Gelfand bound from above
+    assert float(objectives.log_spectral_radius(reduced)) == pytest.approx(np.log(rho), rel=1e-12)
+
+
+@pytest.mark.parametrize("k, delay_steps", [(200.0, 20.3), (150.0, 12.4), (300.0, 25.5), (55.0, 5.3)])
+def test_log_spectral_radius_gradient_matches_fd(plant2, k, delay_steps):
+    """The stability penalty's derivative against central differences of NumPy's eigenvalues,
+    in k and in the fractional delay. The first three loops have a complex dominant pair (where
+    Gelfand's formula, the earlier estimate, had derivatives of the wrong sign); the last a
+    real one. The delay line's unused tail gives defective zero eigenvalues throughout."""
+    capacity = 32
+
+    def exact(k, d):
+        return np.log(np.abs(np.linalg.eigvals(np.asarray(stability.deflated_loop_matrix(plant2, k, d, capacity)))).max())
+
+    f = lambda k, d: objectives.log_spectral_radius(stability.deflated_loop_matrix(plant2, k, d, capacity))
+    g_k, g_d = jax.grad(f, argnums=(0, 1))(jnp.asarray(k), jnp.asarray(delay_steps))
+    h_k, h_d = 1e-5 * k, 1e-5
+    fd_k = (exact(k + h_k, delay_steps) - exact(k - h_k, delay_steps)) / (2 * h_k)
+    fd_d = (exact(k, delay_steps + h_d) - exact(k, delay_steps - h_d)) / (2 * h_d)
+    assert float(g_k) == pytest.approx(fd_k, rel=RTOL_FD)
+    assert float(g_d) == pytest.approx(fd_d, rel=RTOL_FD)
 
 
 def test_tuner_objective_gradient_matches_fd():
@@ -135,7 +161,7 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned):
     tree_allclose(resumed["raw"], full["raw"], rtol=0)
     tree_allclose(resumed["best_raw"], full["best_raw"], rtol=0)
     assert [h["loss"] for h in resumed["history"]] == [h["loss"] for h in full["history"]]
-    with pytest.raises(ValueError, match="another configuration"):
+    with pytest.raises(ValueError, match=r"another configuration \(changed: seed;"):
         tune(dataclasses.replace(cfg, seed=1), tmp_path / "cut", resume=True, progress=False)
 
 
@@ -168,6 +194,21 @@ def test_bad_input_is_refused(tmp_path):
         TuneConfig.from_mapping({"scenarios": {"noise": 1.0}})
     with pytest.raises(ValueError, match=r"unknown objective key\(s\)"):
         TuneConfig.from_mapping({"objective": {"tip": 1.0}})
+    for table in ("scenarios", "objective"):
+        with pytest.raises(ValueError, match=f"{table[:-1] if table == 'scenarios' else table} must be a table of keys"):
+            TuneConfig.from_mapping({table: 5})
+    with pytest.raises(ValueError, match="initial must be a table of parameter values"):
+        TuneConfig.from_mapping({"initial": 5})
+    with pytest.raises(ValueError, match=r"seed must be an integer in \[-2\*\*63, 2\*\*63\)"):
+        TuneConfig(seed=-(2**63) - 1)
+    with pytest.raises(ValueError, match="objective must be an ObjectiveSpec"):
+        TuneConfig(objective=None)
+    with pytest.raises(ValueError, match="scenarios must be a ScenarioSpec"):
+        TuneConfig(scenarios={"horizon_s": 1.0})
+    with pytest.raises(ValueError, match=r"cvar_level must be a number in \[0, 1\)"):
+        ObjectiveSpec(cvar_level="0.9")
+    with pytest.raises(ValueError, match="worst_temperature must be a finite number > 0"):
+        ObjectiveSpec(worst_temperature="hot")
     with pytest.raises(ValueError, match="youngs_modulus_rel must be in"):
         ScenarioSpec(youngs_modulus_rel=1.5)
     with pytest.raises(ValueError, match="noise_angle_rad must be >= 0"):
@@ -202,3 +243,22 @@ def test_cli_tune_with_toml_config(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("learning_rat = 0.1\n")
     assert cli.main(["tune", "--config", str(bad), "--out", str(tmp_path / "b"), "--no-progress"]) == 2
+
+
+def test_checkpoint_round_trips_an_infinite_best_value(tmp_path):
+    """JSON has no inf: a run whose initial held-out objective was not finite resumes with
+    best_val = inf (any finite value improves on it), not None."""
+    from tuning.tuner import _load_checkpoint, _save_checkpoint
+
+    raw = {"log_k": jnp.zeros(()), "tau_z": jnp.ones(())}
+    state = {"raw": raw, "opt_state": (), "best_raw": raw, "best_val": float("inf"), "step": 3, "history": []}
+    _save_checkpoint(str(tmp_path / CHECKPOINT), state)
+    loaded = _load_checkpoint(str(tmp_path / CHECKPOINT), (raw, (), raw))
+    assert loaded["best_val"] == float("inf") and loaded["step"] == 3
+    assert 1.0 < loaded["best_val"]
+
+
+def test_resume_from_an_unreadable_checkpoint_is_refused(tmp_path):
+    (tmp_path / CHECKPOINT).write_bytes(b"not a zip file")
+    with pytest.raises(ValueError, match="--resume: cannot read the checkpoint"):
+        tune(TuneConfig(controller="dfs", steps=1, **SMALL), tmp_path, resume=True, progress=False)

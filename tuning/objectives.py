@@ -1,8 +1,9 @@
 """Scalar objectives over a batch of closed-loop rollouts, and a stability penalty for DFS.
 
 Per scenario, the loss is a weighted sum of terms, each divided by its mean over the training
-batch under the paper's gains (so the paper's gains score exactly ``sum(weights)`` on the
-training batch and every term is dimensionless):
+batch under the paper's gains (so every term is dimensionless, and the paper's gains score
+exactly ``sum(weights)`` on the training batch under the mean; the CVaR and the worst case
+score them higher):
 
 * ``tip_ise``: integral of the squared elastic tip deflection;
 * ``hub_ise``: integral of the squared hub angle (the hub-angle error; set-point 0);
@@ -65,10 +66,11 @@ class ObjectiveSpec:
             raise ValueError(f"at least one objective weight among {TERMS} must be > 0")
         if self.reduction not in REDUCTIONS:
             raise ValueError(f"objective reduction must be one of {REDUCTIONS}; got {self.reduction!r}")
-        if not (0 <= self.cvar_level < 1):
-            raise ValueError(f"objective cvar_level must be in [0, 1); got {self.cvar_level}")
-        if not (math.isfinite(self.worst_temperature) and self.worst_temperature > 0):
-            raise ValueError(f"objective worst_temperature must be finite and > 0; got {self.worst_temperature}")
+        level, temp = self.cvar_level, self.worst_temperature
+        if isinstance(level, bool) or not isinstance(level, (int, float)) or not (0 <= level < 1):
+            raise ValueError(f"objective cvar_level must be a number in [0, 1); got {level!r}")
+        if isinstance(temp, bool) or not isinstance(temp, (int, float)) or not (math.isfinite(temp) and temp > 0):
+            raise ValueError(f"objective worst_temperature must be a finite number > 0; got {temp!r}")
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "ObjectiveSpec":
@@ -105,39 +107,54 @@ def scenario_losses(terms: Terms, scales: Terms, spec: ObjectiveSpec) -> jax.Arr
     return total
 
 
+def _cvar_count(level: float, batch: int) -> int:
+    """How many of ``batch`` losses the CVaR at ``level`` averages: ``ceil((1 - level) batch)``,
+    at least 1. The product is rounded to 9 decimals first, so that a whole number computed
+    in floating point (``(1 - 0.7) * 10 = 3.0000000000000004``) is not rounded up past."""
+    return max(1, math.ceil(round((1 - level) * batch, 9)))
+
+
 def reduce_losses(losses: jax.Array, spec: ObjectiveSpec) -> jax.Array:
     """Combine [B] losses into one scalar (mean, CVaR or smooth worst case)."""
     if spec.reduction == "mean":
         return jnp.mean(losses)
     if spec.reduction == "cvar":
-        count = max(1, int(math.ceil((1 - spec.cvar_level) * losses.shape[0])))
+        count = _cvar_count(spec.cvar_level, losses.shape[0])
         return jnp.mean(jax.lax.top_k(losses, count)[0])
     temp = spec.worst_temperature
     return temp * (jax.nn.logsumexp(losses / temp) - jnp.log(losses.shape[0]))
 
 
-def spectral_radius(matrix: jax.Array) -> jax.Array:
-    """Largest |eigenvalue| (exact, for reporting; its gradient is NaN at repeated eigenvalues)."""
-    return jnp.max(jnp.abs(jnp.linalg.eigvals(matrix)))
+@jax.custom_jvp
+def log_spectral_radius(matrix: jax.Array) -> jax.Array:
+    """log of the largest |eigenvalue| of a real square matrix, differentiable.
 
-
-def log_spectral_radius_smooth(matrix: jax.Array, squarings: int = 24) -> jax.Array:
-    """Differentiable estimate of log(spectral radius): log ||M^N|| / N with N = 2^squarings.
-
-    Gelfand's formula by normalised repeated squaring; it approaches log rho from above with
-    an error of about log(cond) / N. Unlike ``eigvals`` its gradient is finite when the
-    matrix has repeated eigenvalues (the zero eigenvalues of the unused tail of the delay line).
+    The derivative is that of the dominant eigenvalue alone, ``Re(dlam / lam)`` with
+    ``dlam = w^T dM v / (w^T v)`` from its right eigenvector ``v`` (``M v = lam v``) and left
+    eigenvector ``w`` (``w^T M = lam w^T``). It stays finite where other eigenvalues repeat
+    (the defective zero eigenvalues of the unused tail of the delay line), where the
+    derivative of ``eigvals`` is NaN. A conjugate pair gives the same derivative from either
+    member; where two different modes tie in modulus it is that of one of them, a
+    one-sided derivative of the max. (Gelfand's formula, ``log ||M^N|| / N``, has the right
+    value but not the right derivative: with a complex dominant pair, ``||M^N||`` oscillates
+    with the phase ``N arg(lam)``, and the derivative of that phase does not vanish as N
+    grows.)
     """
+    return jnp.log(jnp.max(jnp.abs(jnp.linalg.eigvals(matrix))))
 
-    def body(carry, _):
-        b, log_norm = carry
-        sq = b @ b
-        n = jnp.linalg.norm(sq)
-        return (sq / n, 2 * log_norm + jnp.log(n)), None
 
-    n0 = jnp.linalg.norm(matrix)
-    (_, log_norm), _ = jax.lax.scan(body, (matrix / n0, jnp.log(n0)), None, length=squarings)
-    return log_norm / 2.0**squarings
+@log_spectral_radius.defjvp
+def _log_spectral_radius_jvp(primals: tuple[jax.Array], tangents: tuple[jax.Array]) -> tuple[jax.Array, jax.Array]:
+    (matrix,), (d_matrix,) = primals, tangents
+    values, right = jnp.linalg.eig(matrix)
+    i = jnp.argmax(jnp.abs(values))
+    lam, v = values[i], right[:, i]
+    # Left eigenvectors as right eigenvectors of the transpose (eig with left eigenvectors is
+    # not available on every backend); pick the one of the same eigenvalue.
+    values_t, right_t = jnp.linalg.eig(matrix.T)
+    w = right_t[:, jnp.argmin(jnp.abs(values_t - lam))]
+    d_lam = (w @ d_matrix.astype(v.dtype) @ v) / (w @ v)
+    return jnp.log(jnp.abs(lam)), jnp.real(d_lam / lam).astype(matrix.dtype)
 
 
 def stability_penalty(log_radius: jax.Array, dt: float, spec: ObjectiveSpec) -> jax.Array:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from typing import Any, Callable
 
 import jax
@@ -44,8 +45,9 @@ def _figures(state: dict[str, Any], out_dir: str) -> list[str]:
         plotting.save(fig, os.path.join(out_dir, name))
         written.append(name)
         nperseg = min(1024, t.shape[0])
-        psd = {n: np.asarray(welch(tr.z[:, 1], 1 / problem.dt, nperseg=nperseg)[1]) for n, tr in trajs.items()}
-        freqs = np.asarray(welch(trajs["tuned"].z[:, 1], 1 / problem.dt, nperseg=nperseg)[0])
+        estimates = {n: welch(tr.z[:, 1], 1 / problem.dt, nperseg=nperseg) for n, tr in trajs.items()}
+        psd = {n: np.asarray(p) for n, (_, p) in estimates.items()}
+        freqs = np.asarray(estimates["tuned"][0])
         fig = plotting.psds(freqs, psd, np.asarray(problem.freqs_hz), "PSD of tip deflection (m^2/Hz)", f"{config.controller}: paper vs tuned gains, {label}")
         name = f"psd_{idx}.png"
         plotting.save(fig, os.path.join(out_dir, name))
@@ -57,6 +59,8 @@ def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = F
     """Tune, then write ``tuned.json`` (atomically, last), ``history.csv`` and figures into ``out_dir``."""
     out_dir = os.fspath(out_dir)
     state = tune(config, out_dir, resume=resume, progress=progress, on_step=on_step)
+    if progress:
+        print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)
     summary = summarize(state)
     summary["figures"] = _figures(state, out_dir)
     fileio.write_json(os.path.join(out_dir, "tuned.json"), summary)

@@ -27,8 +27,8 @@ class TunedController(NamedTuple):
 
     Attributes:
       name: one of CONTROLLERS.
-      controller: the jaxflex controller (DFS with a linear-interpolated delay, so tau is
-        differentiable).
+      controller: the jaxflex controller (DFS with a delay read by linear or cubic
+        interpolation or a Pade filter, each differentiable in tau).
       to_physical: raw (unconstrained) pytree -> controller parameters.
       to_raw: controller parameters -> raw pytree.
       named: controller parameters -> {"k": .., "tau_s": .., "k1": ..} (Python floats).

@@ -15,6 +15,8 @@ import io
 import json
 import math
 import os
+import sys
+import zipfile
 from typing import Any, Callable, Mapping
 
 import jax
@@ -24,6 +26,7 @@ import optax
 
 from jaxflex import beam, fileio
 from jaxflex.analysis import stability
+from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.registry import PARAMETERS
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
@@ -97,8 +100,8 @@ class TuneConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0; got {v!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
-            raise ValueError(f"seed must be an integer; got {self.seed!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not -(2**63) <= self.seed < 2**63:
+            raise ValueError(f"seed must be an integer in [-2**63, 2**63); got {self.seed!r}")
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         t = self.fuzzy_temperature
@@ -106,7 +109,13 @@ class TuneConfig:
             raise ValueError(f"fuzzy_temperature must be a finite number >= 0; got {t!r}")
         if self.method not in ("rk4", "zoh"):
             raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
+        if not isinstance(self.scenarios, ScenarioSpec):
+            raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")
+        if not isinstance(self.objective, ObjectiveSpec):
+            raise ValueError(f"objective must be an ObjectiveSpec; got {self.objective!r}")
         allowed = PARAMETERS[self.controller]
+        if not isinstance(self.initial, Mapping):
+            raise ValueError(f"initial must be a table of parameter values by name ({sorted(allowed)}); got {self.initial!r}")
         unknown = sorted(set(self.initial) - set(allowed))
         if unknown:
             raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed)}")
@@ -172,12 +181,16 @@ class Problem:
         return jax.vmap(one)(batch)
 
     def log_radius(self, raw: Any) -> jax.Array | None:
-        """Smooth log spectral radius of the nominal sampled DFS loop (None without DFS)."""
+        """Log spectral radius of the nominal sampled DFS loop (None without DFS)."""
         if self.config.controller != "dfs":
             return None  # a fuzzy part is nonlinear: no sampled-loop matrix
-        params = self.tc.to_physical(raw)
+        return self.dfs_log_radius(self.tc.to_physical(raw))
+
+    def dfs_log_radius(self, params: DFSParams) -> jax.Array:
+        """Log spectral radius of the sampled loop of the nominal plant under DFS ``params``,
+        with its delay states and without the structural eigenvalue 1."""
         loop = stability.deflated_loop_matrix(self.nominal, params.k, params.tau_s / self.dt, self.config.capacity)
-        return objectives.log_spectral_radius_smooth(loop)
+        return objectives.log_spectral_radius(loop)
 
     def _objective(self, raw: Any, batch: Scenario) -> tuple[jax.Array, dict[str, jax.Array]]:
         terms = self._terms(raw, batch)
@@ -217,12 +230,16 @@ def _save_checkpoint(path: str, state: dict[str, Any]) -> None:
 
 
 def _load_checkpoint(path: str, template: tuple[Any, Any, Any]) -> dict[str, Any]:
-    with np.load(path) as data:
-        meta = json.loads(bytes(data["meta"]).decode())
-        treedef = jax.tree.structure(template)
-        n = treedef.num_leaves
-        leaves = [jnp.asarray(data[f"leaf_{i}"]) for i in range(n)]
+    treedef = jax.tree.structure(template)
+    try:
+        with np.load(path) as data:
+            meta = json.loads(bytes(data["meta"]).decode())
+            leaves = [jnp.asarray(data[f"leaf_{i}"]) for i in range(treedef.num_leaves)]
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:
+        raise ValueError(f"--resume: cannot read the checkpoint {path} ({type(err).__name__}: {err}); start a new run in another --out") from None
     raw, opt_state, best_raw = jax.tree.unflatten(treedef, leaves)
+    if meta["best_val"] is None:  # JSON has no inf or NaN: an initial objective that was not finite
+        meta["best_val"] = math.inf
     return {**meta, "raw": raw, "opt_state": opt_state, "best_raw": best_raw}
 
 
@@ -250,7 +267,10 @@ def tune(
       config: the run.
       out_dir: folder for checkpoint.npz and history.csv.
       resume: continue from ``out_dir/checkpoint.npz`` (an error if it is missing or was made
-        with another configuration).
+        with another configuration). An interrupted run ends as the uninterrupted one would.
+        A finished run resumed with more ``steps`` goes on, but is not quite one longer run:
+        its last step was validated (every run validates its last step), which may have
+        moved the best parameters and the early-stopping count.
       progress: show a tqdm progress bar with the loss and the validation objective.
       on_step: called with the step number after each step (tests use it to interrupt).
       optimizer: any optax GradientTransformation (default Adam at ``config.learning_rate``);
@@ -264,6 +284,8 @@ def tune(
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     ckpt_path = os.path.join(out_dir, CHECKPOINT)
+    if progress:
+        print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios, compiling", file=sys.stderr, flush=True)
     problem = Problem(config, optimizer)
     fingerprint = config.fingerprint()
     names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
@@ -275,7 +297,10 @@ def tune(
         template = (problem.initial_raw, problem.optimizer.init(problem.initial_raw), problem.initial_raw)
         state = _load_checkpoint(ckpt_path, template)
         if state["fingerprint"] != fingerprint:
-            raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration (fingerprint {state['fingerprint']} != {fingerprint})")
+            before, now = state.get("config", {}), json.loads(json.dumps(fileio.to_jsonable(config.to_dict())))
+            changed = sorted(k for k in now if k != "steps" and k in before and before[k] != now[k])
+            what = f"changed: {', '.join(changed)}" if changed else "the dtype differs: --x64"
+            raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration ({what}; fingerprint {state['fingerprint']} != {fingerprint})")
     else:
         val0 = float(problem.evaluate(problem.initial_raw, problem.heldout)[0])
         state = {
@@ -283,12 +308,13 @@ def tune(
             "raw": problem.initial_raw,
             "opt_state": problem.optimizer.init(problem.initial_raw),
             "best_raw": problem.initial_raw,
-            "best_val": val0,
+            "best_val": val0 if math.isfinite(val0) else math.inf,  # any finite value improves on it
             "best_step": 0,
             "bad_evals": 0,
             "stopped_early": False,
             "history": [],
             "fingerprint": fingerprint,
+            "config": config.to_dict(),
         }
 
     bar = None
@@ -299,12 +325,11 @@ def tune(
     try:
         while state["step"] < config.steps and not state["stopped_early"]:
             raw, opt_state, info = problem.train_step(state["raw"], state["opt_state"], problem.train)
-            loss = float(info["loss"])
-            if not math.isfinite(loss):
-                raise ValueError(
-                    f"the objective became {loss} at step {state['step'] + 1}: lower learning_rate or clip_norm, "
-                    f"or check the scenarios; the last checkpoint in {out_dir} is kept"
-                )
+            loss, grad_norm = float(info["loss"]), float(info["grad_norm"])
+            if not (math.isfinite(loss) and math.isfinite(grad_norm)):
+                what = f"the objective became {loss}" if not math.isfinite(loss) else f"the gradient norm became {grad_norm}"
+                kept = f"the last checkpoint in {out_dir} is kept" if os.path.exists(ckpt_path) else f"no checkpoint was written yet (every {config.checkpoint_every} steps)"
+                raise ValueError(f"{what} at step {state['step'] + 1}: lower learning_rate or clip_norm, or check the scenarios; {kept}")
             state["raw"], state["opt_state"], state["step"] = raw, opt_state, state["step"] + 1
             row = {"step": state["step"], **{k: float(v) for k, v in info.items()}}
             row.update(problem.tc.named(problem.tc.to_physical(raw)))
@@ -349,7 +374,8 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
         "objective": {
             "train": {"before": ev(problem.initial_raw, problem.train), "after": ev(best, problem.train), "paper": ev(problem.paper_raw, problem.train)},
             "heldout": {"before": ev(problem.initial_raw, problem.heldout), "after": ev(best, problem.heldout), "paper": ev(problem.paper_raw, problem.heldout)},
-            "definition": "weighted, normalised per-scenario losses (1.0 = the paper's gains on the training batch for each unit weight), "
+            "definition": "weighted per-scenario losses, each term normalised by its mean under the paper's gains on the training batch "
+            "(so the mean of the paper's gains scores 1.0 per unit weight), "
             f"combined by {problem.config.objective.reduction}",
         },
         "steps_run": state["step"],
@@ -366,8 +392,7 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
     if dfs_params is not None:
 
         def radius(p):
-            loop = stability.deflated_loop_matrix(problem.nominal, p.k, p.tau_s / problem.dt, problem.config.capacity)
-            return float(objectives.spectral_radius(loop))
+            return math.exp(float(problem.dfs_log_radius(p)))
 
         rho = radius(dfs_params)
         paper_rho = radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0])
