@@ -108,19 +108,46 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+_RESUME_HINT = {
+    "tune": "; --resume continues from the last checkpoint",
+    "montecarlo": "; --resume continues from the chunks written",
+}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``jaxflex`` console script."""
+    """Entry point of the ``jaxflex`` console script.
+
+    Returns 0 on success, 2 for bad input (one line on stderr naming what is wrong, no
+    traceback) and 130 when interrupted (Ctrl-C).
+    """
     args = _parser().parse_args(argv)
+    try:
+        return _run(args)
+    except (ValueError, OSError) as err:
+        print(f"jaxflex {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"jaxflex {args.command}: interrupted{_RESUME_HINT.get(args.command, '')}", file=sys.stderr)
+        return 130
+
+
+def _check_out(path: str) -> None:
+    """Refuse an ``--out`` that cannot be a folder before any work is done."""
+    if not path:
+        raise ValueError("--out must name a folder; got ''")
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ValueError(f"--out {path!r} is a file, not a folder")
+
+
+def _run(args: argparse.Namespace) -> int:
     if hasattr(args, "cpu_devices"):  # bench and montecarlo, before JAX's first computation
-        try:
-            _use_cpu_devices(args.cpu_devices)
-        except ValueError as err:
-            print(f"jaxflex {args.command}: error: {err}", file=sys.stderr)
-            return 2
+        _use_cpu_devices(args.cpu_devices)
     if getattr(args, "x64", False):
         import jax
 
         jax.config.update("jax_enable_x64", True)
+    if hasattr(args, "out"):
+        _check_out(args.out)
     if args.command == "reproduce":
         from jaxflex.report import reproduce
 
@@ -129,11 +156,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         def progress(msg: str) -> None:
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-        try:
-            results = reproduce(args.out, n_modes=args.modes, progress=progress, params_file=args.params)
-        except ValueError as err:
-            print(f"jaxflex reproduce: error: {err}", file=sys.stderr)
-            return 2
+        results = reproduce(args.out, n_modes=args.modes, progress=progress, params_file=args.params)
         print(_reproduce_summary(results))
         print(f"wrote {args.out}/results.json, {args.out}/report.md and figures in {args.out}/ ({time.perf_counter() - start:.1f} s)")
         return 0
@@ -146,9 +169,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "bench":
         from jaxflex.bench import run_bench
 
+        if args.json is not None:
+            _check_out_file("--json", args.json)
         run_bench(args.json, quick=not args.full)
         return 0
     return 2  # pragma: no cover - argparse enforces the choices
+
+
+def _check_out_file(option: str, path: str) -> None:
+    """Refuse an output file that cannot be written before the work that fills it is done."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if not path or os.path.isdir(path):
+        raise ValueError(f"{option} must name a file; got {path!r}")
+    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+        raise ValueError(f"{option} {path!r}: its folder {folder} does not exist or is not writable")
 
 
 def _reproduce_summary(results: dict) -> str:
@@ -183,21 +217,17 @@ def _tune(args: argparse.Namespace) -> int:
     from tuning.run import run_tune
     from tuning.tuner import TuneConfig
 
-    try:
-        values = fileio.read_toml(args.config) if args.config else {}
-        config = TuneConfig.from_mapping(
-            values,
-            controller=args.controller,
-            n_scenarios=args.scenarios,
-            n_heldout=args.heldout,
-            steps=args.steps,
-            seed=args.seed,
-            learning_rate=args.lr,
-        )
-        summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress)
-    except (ValueError, OSError) as err:
-        print(f"jaxflex tune: error: {err}", file=sys.stderr)
-        return 2
+    values = fileio.read_toml(args.config) if args.config else {}
+    config = TuneConfig.from_mapping(
+        values,
+        controller=args.controller,
+        n_scenarios=args.scenarios,
+        n_heldout=args.heldout,
+        steps=args.steps,
+        seed=args.seed,
+        learning_rate=args.lr,
+    )
+    summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress)
     obj = summary["objective"]
     print(f"tuned {summary['controller']}: {json.dumps(summary['params'])} (paper: {json.dumps(summary['paper_params'])})")
     print(f"objective, training   {obj['train']['before']:.4g} -> {obj['train']['after']:.4g}")
@@ -211,35 +241,46 @@ def _tune(args: argparse.Namespace) -> int:
 
 def _montecarlo(args: argparse.Namespace) -> int:
     import dataclasses
+    from collections.abc import Mapping
 
+    distributed = {"--coordinator": args.coordinator, "--num-processes": args.num_processes, "--process-id": args.process_id}
+    if not args.distributed and any(v is not None for v in distributed.values()):
+        raise ValueError(f"{', '.join(k for k, v in distributed.items() if v is not None)} only apply with --distributed")
+    if args.process_id is not None and args.process_id < 0:
+        raise ValueError(f"--process-id must be an integer >= 0; got {args.process_id}")
     if args.distributed:
         import jax
 
         jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id)
     from jaxflex.montecarlo import MCConfig, run_montecarlo
-    from jaxflex.report import load_tuned
+    from jaxflex.report import format_value, load_tuned
     from jaxflex.scenarios import ScenarioSpec
 
-    try:
-        values = fileio.read_toml(args.config) if args.config else {}
-        fileio.check_keys(values, [f.name for f in dataclasses.fields(MCConfig)], "config")
-        if "scenarios" in values:
-            values["scenarios"] = ScenarioSpec.from_mapping({"horizon_s": 3.0, **values["scenarios"]})
-        if "percentiles" in values:
-            values["percentiles"] = tuple(values["percentiles"])
-        if args.params:
-            name, _, _, named = load_tuned(args.params)
-            values.setdefault("controller", name)
-            values["params"] = named
-        overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed}
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        summary = run_montecarlo(MCConfig(**values), args.out, resume=args.resume, progress=not args.no_progress)
-    except (ValueError, OSError) as err:
-        print(f"jaxflex montecarlo: error: {err}", file=sys.stderr)
-        return 2
+    values = fileio.read_toml(args.config) if args.config else {}
+    fileio.check_keys(values, [f.name for f in dataclasses.fields(MCConfig)], "config")
+    if "scenarios" in values:
+        table = values["scenarios"]
+        values["scenarios"] = ScenarioSpec.from_mapping({"horizon_s": 3.0, **table} if isinstance(table, Mapping) else table)
+    if isinstance(values.get("percentiles"), list):
+        values["percentiles"] = tuple(values["percentiles"])
+    if args.params:
+        tuned = load_tuned(args.params)
+        controller = args.controller or values.get("controller", tuned.name)
+        if controller != tuned.name:
+            raise ValueError(f"--params {args.params} holds tuned {tuned.name} parameters; the controller asked for is {controller}")
+        values["controller"] = tuned.name
+        values["params"] = tuned.named
+        # The controller as it was tuned (a config file's own values take precedence).
+        options = {**tuned.options, "fuzzy_temperature": tuned.options["temperature"]}
+        for key in ("capacity", "delay", "pade_order", "fuzzy_temperature"):
+            values.setdefault(key, options[key])
+    overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed}
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    summary = run_montecarlo(MCConfig(**values), args.out, resume=args.resume, progress=not args.no_progress)
     tip = summary["metrics"]["peak_tip_deflection_m"]
+    spread = ", ".join(f"p{p:g} {format_value(tip[f'p{p:g}'], '.4g')}" for p in summary["percentiles"])
     print(f"{summary['n_scenarios']} scenarios on {summary['devices']} device(s): diverged fraction {summary['diverged_fraction']:.4g}")
-    print(f"peak tip deflection (m): mean {tip['mean']:.4g}, p5 {tip.get('p5')}, p95 {tip.get('p95')}")
+    print(f"peak tip deflection (m): mean {format_value(tip['mean'], '.4g')}, {spread}")
     print(f"wrote {os.path.join(args.out, 'summary.json')} and figures")
     return 0
 
@@ -247,13 +288,10 @@ def _montecarlo(args: argparse.Namespace) -> int:
 def _stability(args: argparse.Namespace) -> int:
     from jaxflex.stability_report import run
 
-    try:
-        result = run(args.out, k=args.k, tau_s=args.tau, n_modes=args.modes, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
-    except (ValueError, OSError) as err:
-        print(f"jaxflex stability: error: {err}", file=sys.stderr)
-        return 2
+    result = run(args.out, k=args.k, tau_s=args.tau, n_modes=args.modes, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+    first = result["first_destabilising_delay_s"]
     print(f"k = {args.k:g}, tau = {args.tau:g} s, {args.modes} modes: sampled-loop spectral radius {result['spectral_radius']:.6f} "
-          f"({'stable' if result['stable_sampled'] else 'unstable'}), first destabilising delay {result['first_destabilising_delay_s']} s")
+          f"({'stable' if result['stable_sampled'] else 'unstable'}), first destabilising delay {'none' if first is None or first == float('inf') else f'{first:g} s'}")
     print(f"wrote {os.path.join(args.out, 'stability.json')} and {os.path.join(args.out, 'stability_chart.png')}")
     return 0
 

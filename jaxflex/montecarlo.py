@@ -20,6 +20,7 @@ import hashlib
 import json
 import math
 import os
+import sys
 from typing import Any, Callable, Sequence
 
 import jax
@@ -29,7 +30,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxflex import beam, fileio
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
-from jaxflex.controllers.registry import NAMES
+from jaxflex.controllers.registry import DELAYS, NAMES
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, perturbed_params, sample_scenarios, scenario_plant
@@ -57,11 +58,15 @@ class MCConfig:
       params: controller parameters by name (k, tau_s, k1, k2, k3); missing names take the
         paper's values.
       n_scenarios: N >= 1.
-      chunk: scenarios per chunk (>= 1; rounded up to a multiple of the device count).
+      chunk: scenarios per chunk (>= 1). For sharding, a chunk is padded to a multiple of the
+        device count with copies of its last scenario, whose results are dropped.
       seed: PRNG seed.
       percentiles: reported percentiles, each in [0, 100].
       scenarios: the scenario distribution (default 3 s, as the paper).
       n_modes, method, capacity: plant modes, "rk4"/"zoh", DFS buffer capacity (samples).
+      delay, pade_order: how DFS reads the delayed angle (``by_name``'s ``delay``, one of
+        ``DELAYS``) and the Pade order with ``delay="pade"``.
+      fuzzy_temperature: smoothing temperature of the fuzzy controller (0 = faithful).
       band_scenarios: scenarios of chunk 0 whose tip deflection feeds the percentile-band plot.
     """
 
@@ -75,19 +80,38 @@ class MCConfig:
     n_modes: int = 2
     method: str = "rk4"
     capacity: int = 64
+    delay: str = "linear"
+    pade_order: int = 8
+    fuzzy_temperature: float = 0.0
     band_scenarios: int = 256
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
-        for name in ("n_scenarios", "chunk", "n_modes", "capacity", "band_scenarios"):
+        for name in ("n_scenarios", "chunk", "n_modes", "capacity", "pade_order", "band_scenarios"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1; got {v!r}")
-        if not self.percentiles or any(not (isinstance(p, (int, float)) and 0 <= p <= 100) for p in self.percentiles):
-            raise ValueError(f"percentiles must be numbers in [0, 100]; got {list(self.percentiles)}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not -(2**63) <= self.seed < 2**63:
+            raise ValueError(f"seed must be an integer in [-2**63, 2**63); got {self.seed!r}")
+        if not isinstance(self.params, dict) or not all(isinstance(k, str) for k in self.params):
+            raise ValueError(f"params must be a dict of parameter values by name; got {self.params!r}")
+        if not isinstance(self.scenarios, ScenarioSpec):
+            raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")
+        if (
+            isinstance(self.percentiles, (str, bytes))
+            or not isinstance(self.percentiles, Sequence)
+            or not self.percentiles
+            or any(isinstance(p, bool) or not (isinstance(p, (int, float)) and 0 <= p <= 100) for p in self.percentiles)
+        ):
+            raise ValueError(f"percentiles must be numbers in [0, 100]; got {self.percentiles!r}")
         if self.method not in ("rk4", "zoh"):
             raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
+        if self.delay not in DELAYS:
+            raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
+        t = self.fuzzy_temperature
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not (math.isfinite(t) and t >= 0):
+            raise ValueError(f"fuzzy_temperature must be a finite number >= 0; got {t!r}")
 
     def fingerprint(self) -> str:
         d = dataclasses.asdict(self)
@@ -97,10 +121,10 @@ class MCConfig:
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def controller_and_params(name: str, params: dict, dt: float, capacity: int) -> tuple[Controller, Any]:
+def controller_and_params(name: str, params: dict, dt: float, capacity: int, delay: str = "linear", pade_order: int = 8, temperature: float = 0.0) -> tuple[Controller, Any]:
     """The controller ``name`` and its parameters (paper values for missing names); DFS reads
-    its ``capacity``-sample buffer with linear interpolation."""
-    return by_name(name, dt=dt, params=params, capacity=capacity, delay="linear")
+    its ``capacity``-sample buffer with linear interpolation unless ``delay`` says otherwise."""
+    return by_name(name, dt=dt, params=params, capacity=capacity, delay=delay, pade_order=pade_order, temperature=temperature)
 
 
 def metric_names(n_modes: int) -> dict[str, str]:
@@ -128,12 +152,15 @@ class _Runner:
         self.config = config
         spec = config.scenarios
         self.beam = beam.BeamParams()
-        self.controller, self.params = controller_and_params(config.controller, config.params, spec.dt, config.capacity)
+        self.controller, self.params = controller_and_params(
+            config.controller, config.params, spec.dt, config.capacity, config.delay, config.pade_order, config.fuzzy_temperature
+        )
         self.controller.check(self.params)
         self.nominal = discretize(make_plant(self.beam, config.n_modes), spec.dt, config.method)
         devices = jax.devices()
         self.n_devices = len(devices)
-        self.chunk = int(math.ceil(config.chunk / self.n_devices) * self.n_devices)
+        self.chunk = config.chunk
+        self.padding = -config.chunk % self.n_devices
         self.sharding = NamedSharding(Mesh(np.array(devices), ("scenarios",)), PartitionSpec("scenarios"))
         self.key = jax.random.key(config.seed)
 
@@ -152,17 +179,17 @@ class _Runner:
         return sample_scenarios(spec, jax.random.fold_in(self.key, index), self.chunk, self.config.n_modes)
 
     def run_chunk(self, index: int) -> dict[str, np.ndarray]:
-        batch = self.sample(index)
+        batch = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], self.padding, axis=0)]), self.sample(index))
         if jax.process_count() == 1:
             out = self.evaluate(jax.device_put(batch, self.sharding))
-            return {k: np.asarray(v) for k, v in out.items()}
+            return {k: np.asarray(v)[: self.chunk] for k, v in out.items()}
         # Several hosts (jax.distributed): every process drew the same chunk; each hands over
         # the shards its devices hold, and the metrics are gathered back on every process.
         from jax.experimental import multihost_utils
 
         global_batch = jax.tree.map(lambda a: jax.make_array_from_callback(a.shape, self.sharding, lambda idx, a=np.asarray(a): a[idx]), batch)
         out = self.evaluate(global_batch)
-        return {k: np.asarray(multihost_utils.process_allgather(v, tiled=True)) for k, v in out.items()}
+        return {k: np.asarray(multihost_utils.process_allgather(v, tiled=True))[: self.chunk] for k, v in out.items()}
 
 
 def _chunk_path(out_dir: str, index: int) -> str:
@@ -194,6 +221,7 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
         "diverged_fraction": float(diverged.mean()),
         "controller": config.controller,
         "params": dict(config.params),
+        "controller_options": {name: getattr(config, name) for name in ("capacity", "delay", "pade_order", "fuzzy_temperature")},
         "metrics": {name: _statistics(columns[name][ok].astype(np.float64), config.percentiles) for name in names},
         "metric_definitions": names,
         "percentiles": list(config.percentiles),
@@ -221,7 +249,7 @@ def run_montecarlo(
         if not resume:
             raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume to continue it, or choose another --out")
         if previous != meta:
-            raise ValueError(f"--resume: {out_dir} was written by another configuration or device count ({previous} != {meta})")
+            raise ValueError(f"--resume: {out_dir} was written by another configuration ({previous} != {meta})")
     fileio.write_json(meta_path, meta)
 
     n_chunks = int(math.ceil(config.n_scenarios / runner.chunk))
@@ -259,6 +287,8 @@ def run_montecarlo(
     summary = summarize(config, merged)
     summary["devices"] = runner.n_devices
     summary["chunk"] = runner.chunk
+    if figures and progress:
+        print("montecarlo: drawing figures", file=sys.stderr, flush=True)
     summary["figures"] = _figures(runner, merged, out_dir) if figures else []
     fileio.write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary

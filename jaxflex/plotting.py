@@ -131,7 +131,7 @@ def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val:
     if len(val_steps):
         ax.semilogy(val_steps, val, "o-", label="held-out objective", color="C1", ms=3)
     ax.set_xlabel("Step")
-    ax.set_ylabel("Objective (1 = paper gains on training set)")
+    ax.set_ylabel("Objective (normalised by the paper gains' mean)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(title)
@@ -161,13 +161,22 @@ def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title:
 
 
 def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[float], ylabel: str, title: str) -> plt.Figure:
-    """Percentile bands of a signal against time; bands [len(percentiles), T], percentiles ascending."""
+    """Percentile bands of a signal against time; bands [len(percentiles), T].
+
+    Each percentile p < 50 whose mirror 100 - p is also given is a shaded band (inner bands
+    darker), the median a solid line, and any other percentile a dashed line of its own.
+    """
     fig, ax = plt.subplots(figsize=(7.5, 3.8))
-    n = len(percentiles)
-    for i in range(n // 2):
-        ax.fill_between(t, bands[i], bands[n - 1 - i], alpha=0.25 + 0.15 * i, color="C0", lw=0, label=f"p{percentiles[i]:g}-p{percentiles[n - 1 - i]:g}")
-    if 50.0 in percentiles:
-        ax.plot(t, bands[list(percentiles).index(50.0)], color="C0", lw=1.0, label="median")
+    pcts = [float(p) for p in percentiles]
+    paired = sorted(p for p in pcts if p < 50 and 100 - p in pcts)  # outermost first
+    for i, p in enumerate(paired):
+        lo, hi = pcts.index(p), pcts.index(100 - p)
+        ax.fill_between(t, bands[lo], bands[hi], alpha=0.25 + 0.15 * i, color="C0", lw=0, label=f"p{p:g}-p{100 - p:g}")
+    for i, p in enumerate(pcts):
+        if p == 50.0:
+            ax.plot(t, bands[i], color="C0", lw=1.0, label="median")
+        elif p not in paired and 100 - p not in paired:
+            ax.plot(t, bands[i], color="C1", lw=0.8, ls="--", label=f"p{p:g}")
     ax.set_xlabel("Time (s)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import os
 import platform
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -195,8 +195,28 @@ FIGURES = {
 }
 
 
-def load_tuned(path: str | os.PathLike) -> tuple[str, Any, Any, dict[str, float]]:
-    """Read tuned.json from ``jaxflex tune``: (name, controller, parameters, named parameters).
+class Tuned(NamedTuple):
+    """A tuned.json from ``jaxflex tune``, read back (see ``load_tuned``).
+
+    Attributes:
+      name: the controller's name, one of TUNED_CONTROLLERS.
+      controller: the controller, built with the run's ``options``.
+      params: its parameters.
+      named: the parameters by name (k, tau_s, k1, k2, k3).
+      options: how the run built the controller, as ``by_name``'s keywords: ``capacity``,
+        ``delay``, ``pade_order`` and ``temperature``.
+    """
+
+    name: str
+    controller: Any
+    params: Any
+    named: dict[str, float]
+    options: dict[str, Any]
+
+
+def load_tuned(path: str | os.PathLike) -> Tuned:
+    """Read tuned.json from ``jaxflex tune``: the controller as it was tuned (its delay
+    approximation, buffer capacity and fuzzy temperature come from the run's config).
 
     Raises:
       ValueError: naming what is missing or out of range.
@@ -216,17 +236,15 @@ def load_tuned(path: str | os.PathLike) -> tuple[str, Any, Any, dict[str, float]
     if missing:
         raise ValueError(f"--params: {path} lacks numeric parameter(s) {missing} for {name}")
     values = {n: float(named[n]) for n in needed}
-    controller, params = by_name(
-        name,
-        dt=DT,
-        params=values,
-        capacity=int(config.get("capacity", 64)),
-        delay=config.get("delay", "linear"),
-        pade_order=int(config.get("pade_order", 8)),
-        temperature=float(config.get("fuzzy_temperature", 0.0)),
-    )
+    options = {
+        "capacity": int(config.get("capacity", 64)),
+        "delay": config.get("delay", "linear"),
+        "pade_order": int(config.get("pade_order", 8)),
+        "temperature": float(config.get("fuzzy_temperature", 0.0)),
+    }
+    controller, params = by_name(name, dt=DT, params=values, **options)
     controller.check(params)
-    return name, controller, params, values
+    return Tuned(name, controller, params, values, options)
 
 
 def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[str], None] | None = None, params_file: str | os.PathLike | None = None) -> dict[str, Any]:
@@ -269,10 +287,9 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
 
     tuned_results = None
     if tuned is not None:
-        tname, tcontroller, tparams, tnamed = tuned
-        say(f"simulating tuned {tname}")
-        ttraj = jax.block_until_ready(simulate(plant, tcontroller, tparams, scenario))
-        tuned_results = {"controller": tname, "params": tnamed, "run": _run_metrics(ttraj, DT)}
+        say(f"simulating tuned {tuned.name}")
+        ttraj = jax.block_until_ready(simulate(plant, tuned.controller, tuned.params, scenario))
+        tuned_results = {"controller": tuned.name, "params": tuned.named, "run": _run_metrics(ttraj, DT)}
 
     say("estimating PSDs")
     mode_freqs = freqs_model[: min(n_modes, 2)]
@@ -291,7 +308,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     default = ESTIMATORS[next(iter(ESTIMATORS))]
     f_q1, psd_q1_open = welch(trajectories["open_loop"].x[:, 1], 1 / DT, settings=default)
     reduction_q1 = {
-        run: [float(v) for v in vibration_reduction_db(f_q1, psd_q1_open, welch(trajectories[run].x[:, 1], 1 / DT, settings=default)[1], mode_freqs, REL_BAND)]
+        run: [None if runs[run]["diverged"] else float(v) for v in vibration_reduction_db(f_q1, psd_q1_open, welch(trajectories[run].x[:, 1], 1 / DT, settings=default)[1], mode_freqs, REL_BAND)]
         for run in ("dfs", "fuzzy")
     }
 
@@ -340,9 +357,9 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf)), os.path.join(out_dir, "fig4_fuzzy_surface.png"))
 
     if tuned is not None:
-        base = "dfs" if tuned[0] == "dfs" else "fuzzy"
-        pair = {"open_loop": sig["open_loop"], base: sig[base], f"tuned {tuned[0]}": {"q1": np.asarray(ttraj.x[:, 1]), "tip": np.asarray(ttraj.z[:, 1])}}
-        div[f"tuned {tuned[0]}"] = tuned_results["run"]["diverged"]
+        base = "dfs" if tuned.name == "dfs" else "fuzzy"
+        pair = {"open_loop": sig["open_loop"], base: sig[base], f"tuned {tuned.name}": {"q1": np.asarray(ttraj.x[:, 1]), "tip": np.asarray(ttraj.z[:, 1])}}
+        div[f"tuned {tuned.name}"] = tuned_results["run"]["diverged"]
         plotting.save(plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned[0]} ({os.path.basename(str(params_file))})"), os.path.join(out_dir, "fig_tuned_response.png"))
 
     fileio.write_text(os.path.join(out_dir, "report.md"), _report_md(results))

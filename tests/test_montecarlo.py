@@ -57,8 +57,9 @@ def test_diverged_runs_are_counted_not_averaged(tmp_path):
 
 
 # The paper's loop over five chunks, the last one partial: the uninterrupted run of the resume
-# test and, in this process, the single-device run of the device-count test.
-FULL_CONFIG = MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=16, scenarios=SPEC)
+# test and, in this process, the single-device run of the device-count test. The chunk is not
+# a multiple of 4 devices, so that the 4-device run pads it.
+FULL_CONFIG = MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=15, scenarios=SPEC)
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +82,7 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     resumed = run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
     assert resumed["metrics"] == full["metrics"] and resumed["n_scenarios"] == 70
     with pytest.raises(ValueError, match="another configuration"):
-        run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=16, seed=3, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
+        run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=15, seed=3, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
 
 
 # FULL_CONFIG through the command line, in float64 so that the statistics can be compared to
@@ -89,7 +90,7 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
 _CLI_CONFIG = """
 controller = "dfs+fuzzy"
 n_scenarios = 70
-chunk = 16
+chunk = 15
 [scenarios]
 horizon_s = 0.3
 impulse_max_n = 0.5
@@ -133,6 +134,14 @@ def test_statistics_do_not_depend_on_the_device_count(tmp_path, full_run):
         (lambda: MCConfig(percentiles=(5.0, 101.0)), r"percentiles must be numbers in \[0, 100\]"),
         (lambda: MCConfig(n_scenarios=0), "n_scenarios must be an integer >= 1"),
         (lambda: MCConfig(controller="lqr"), "controller must be one of"),
+        (lambda: MCConfig(seed=1.5), "seed must be an integer"),
+        (lambda: MCConfig(seed=2**63), r"seed must be an integer in \[-2\*\*63, 2\*\*63\)"),
+        (lambda: MCConfig(percentiles=[True]), r"percentiles must be numbers in \[0, 100\]"),
+        (lambda: MCConfig(percentiles=50), r"percentiles must be numbers in \[0, 100\]"),
+        (lambda: MCConfig(scenarios={"horizon_s": 1.0}), "scenarios must be a ScenarioSpec"),
+        (lambda: MCConfig(params=None), "params must be a dict"),
+        (lambda: MCConfig(delay="sinc"), "delay must be one of"),
+        (lambda: MCConfig(fuzzy_temperature=-0.1), "fuzzy_temperature must be a finite number >= 0"),
         (lambda: ScenarioSpec(horizon_s=float("nan")), "horizon_s must be a finite number"),
     ],
 )
@@ -148,3 +157,37 @@ def test_cli_refuses_unknown_config_key(tmp_path, capsys):
     bad.write_text("scenarioz = 3\n")
     assert cli.main(["montecarlo", "--config", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert "unknown config key(s) ['scenarioz']" in capsys.readouterr().err
+
+
+def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
+    """`--params tuned.json` takes the tuned run's delay approximation, Pade order, capacity
+    and fuzzy temperature, not the Monte Carlo defaults."""
+    from jaxflex import cli
+
+    tuned = tmp_path / "tuned.json"
+    named = {"k": 45.0, "tau_s": 0.006, "k1": 1.1, "k2": 0.25, "k3": 0.9}
+    tuned.write_text(json.dumps({"controller": "dfs+fuzzy", "params": named, "config": {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}}))
+    config = tmp_path / "mc.toml"
+    config.write_text("band_scenarios = 2\n[scenarios]\nhorizon_s = 0.05\n")
+    out = tmp_path / "o"
+    assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "3", "--chunk", "3", "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "peak tip deflection (m): mean " in printed and ", p50 " in printed and "None" not in printed
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["controller"] == "dfs+fuzzy" and summary["params"] == named
+    assert summary["controller_options"] == {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}
+
+
+def test_percentile_bands_pair_each_percentile_with_its_mirror():
+    """A band joins p and 100 - p; a percentile without its mirror is a line of its own (the
+    p99 of (10, 50, 90, 99) was once paired with p10)."""
+    import matplotlib.pyplot as plt
+
+    from jaxflex import plotting
+
+    t = np.linspace(0, 1, 5)
+    for percentiles, labels in (((10.0, 50.0, 90.0, 99.0), ["p10-p90", "median", "p99"]), ((5.0, 25.0, 50.0, 75.0, 95.0), ["p5-p95", "p25-p75", "median"])):
+        bands = np.outer(np.asarray(percentiles), np.ones_like(t))
+        fig = plotting.percentile_bands(t, bands, percentiles, "y", "title")
+        assert sorted(fig.axes[0].get_legend_handles_labels()[1]) == sorted(labels)
+        plt.close(fig)

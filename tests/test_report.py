@@ -132,3 +132,41 @@ def test_reproduce_summary_of_one_mode_and_a_diverged_run():
     res = {"model": {"natural_frequencies_hz": [13.3]}, "psd": {"name": "hann-1024"}, "vibration_reduction_db": {"dfs": [60.06], "fuzzy": [None]}}
     db_line = cli._reproduce_summary(res).split("\n")[1]
     assert db_line.startswith("vibration reduction (dB, hann-1024) at modes 1: DFS 60.1; fuzzy n/a (paper, modes 1, 2: ")
+
+
+def test_cli_refuses_bad_outputs_before_any_work(tmp_path, capsys):
+    """A file where a folder is wanted, an empty --out, a --json that is a folder, and
+    distributed options without --distributed: exit 2 and one line naming the option, no
+    traceback and no work done first."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    cases = [
+        (["reproduce", "--out", str(afile)], "--out"),
+        (["stability", "--out", str(afile)], "--out"),
+        (["tune", "--out", ""], "--out must name a folder"),
+        (["bench", "--json", str(tmp_path)], "--json must name a file"),
+        (["bench", "--json", str(tmp_path / "missing" / "rows.jsonl")], "does not exist or is not writable"),
+        (["montecarlo", "--coordinator", "host:1234", "--out", str(tmp_path / "m")], "--coordinator only apply with --distributed"),
+    ]
+    for argv, message in cases:
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, (argv, err)
+
+
+def test_cli_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatch):
+    import tuning.run
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tuning.run, "run_tune", interrupted)
+    assert cli.main(["tune", "--out", str(tmp_path / "t"), "--no-progress"]) == 130
+    assert "jaxflex tune: interrupted; --resume continues from the last checkpoint" in capsys.readouterr().err
+
+
+def test_cli_montecarlo_refuses_params_of_another_controller(tmp_path, capsys):
+    tuned = tmp_path / "tuned.json"
+    tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 60.0, "tau_s": 0.005}}))
+    assert cli.main(["montecarlo", "--controller", "fuzzy", "--params", str(tuned), "--out", str(tmp_path / "m")]) == 2
+    assert "holds tuned dfs parameters; the controller asked for is fuzzy" in capsys.readouterr().err
