@@ -171,9 +171,16 @@ def mode_shapes(x_over_l: ArrayLike, n_modes: int) -> jax.Array:
 
     Returns:
       [P, n_modes] mode-shape values.
+
+    Raises:
+      ValueError: for positions that are not a 1-D array, or (where concrete) outside [0, 1].
     """
     lam = jnp.asarray(_clamped_free_constants(check_n_modes(n_modes))[0])
     xi = jnp.asarray(x_over_l)
+    if xi.ndim != 1:
+        raise ValueError(f"x_over_l must be a 1-D array of positions [P]; got shape {xi.shape}")
+    if not isinstance(xi, jax.core.Tracer) and not np.all((np.asarray(xi) >= 0) & (np.asarray(xi) <= 1)):  # NumPy: no tracer under jit
+        raise ValueError(f"x_over_l must lie in [0, 1] (fractions of the length L); got {np.asarray(xi)}")
     lam = lam.astype(jnp.result_type(xi, float))
     z = xi[:, None] * lam[None, :]
     s_l, c_l = jnp.sin(lam), jnp.cos(lam)

@@ -43,13 +43,12 @@ import numpy as np
 from jaxflex import beam, fileio
 from jaxflex.controllers import by_name
 from jaxflex.controllers.registry import NAMES
-from jaxflex.plant import discretize, make_plant
+from jaxflex.plant import METHODS, discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario
 
 CONTROLLERS = NAMES
 DEFUZZ = ("centroid", "singleton", "smooth")  # the fuzzy part: faithful centroid, singleton, smooth
-INTEGRATORS = ("rk4", "zoh")
 DTYPES = ("float32", "float64")
 MODES = ("forward", "grad")
 SMOOTH_TEMPERATURE = 0.02  # the smooth mode's temperature (the tuner's recommended range 0.01-0.05)
@@ -94,7 +93,7 @@ class BenchConfig:
     min_time_s: float = 0.0
 
     def __post_init__(self) -> None:
-        for name, allowed in (("controller", CONTROLLERS), ("defuzz", DEFUZZ), ("integrator", INTEGRATORS), ("dtype", DTYPES), ("mode", MODES)):
+        for name, allowed in (("controller", CONTROLLERS), ("defuzz", DEFUZZ), ("integrator", METHODS), ("dtype", DTYPES), ("mode", MODES)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}; got {getattr(self, name)!r}")
         for name, low in (("batch", 1), ("horizon", 2), ("runs", 1), ("capacity", DELAY_SAMPLES)):
@@ -300,7 +299,7 @@ def quick_configs() -> list[BenchConfig]:
     integrators in float32 forward at batch 4096, the fuzzy defuzzifiers, float64 and the
     gradient of the paper's DFS+fuzzy controller."""
     quick = {"horizon": 500, "min_time_s": WINDOW_S}
-    cfgs = [BenchConfig(controller=c, integrator=i, **quick) for c in CONTROLLERS for i in INTEGRATORS]
+    cfgs = [BenchConfig(controller=c, integrator=i, **quick) for c in CONTROLLERS for i in METHODS]
     cfgs += [BenchConfig(defuzz=d, **quick) for d in ("singleton", "smooth")]
     cfgs += [BenchConfig(dtype="float64", **quick)]
     cfgs += [BenchConfig(mode="grad", batch=1024, runs=3, **quick)]

@@ -34,6 +34,7 @@ mode. Every mode is exact at whole samples; they differ between them:
 
 from __future__ import annotations
 
+import numbers
 from typing import NamedTuple
 
 import jax
@@ -57,10 +58,10 @@ class DelayState(NamedTuple):
 
 
 def check_capacity(capacity: int) -> int:
-    """The capacity sets an array shape, so it must be a Python int >= 1."""
-    if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
+    """The capacity sets an array shape, so it must be an integer >= 1 (returned as an int)."""
+    if isinstance(capacity, bool) or not isinstance(capacity, numbers.Integral) or capacity < 1:
         raise ValueError(f"capacity must be an integer >= 1 (samples); got {capacity!r}")
-    return capacity
+    return int(capacity)
 
 
 def delay_init(y0: ArrayLike, capacity: int) -> DelayState:
@@ -75,6 +76,8 @@ def delay_init(y0: ArrayLike, capacity: int) -> DelayState:
 
 def delay_push(state: DelayState, y: jax.Array) -> DelayState:
     """Write the newest sample ``y`` [n]."""
+    if jnp.shape(y) != state.buffer.shape[1:]:
+        raise ValueError(f"y must have shape {state.buffer.shape[1:]} (one value per channel of the line); got {jnp.shape(y)}")
     size = state.buffer.shape[0]
     buffer = state.buffer.at[state.head].set(y)
     return DelayState(buffer, (state.head + 1) % size)
@@ -88,9 +91,15 @@ def delay_read(state: DelayState, delay_steps: ArrayLike, interpolation: str = "
       delay_steps: delay in samples, in [0, capacity]; may be traced. Values outside are
         clipped to that range (check them where they are concrete: ``DFS.check``).
       interpolation: ``"nearest"``, ``"linear"`` or ``"cubic"`` (see the module docstring).
+
+    Raises:
+      ValueError: for another ``interpolation``.
     """
     size = state.buffer.shape[0]
-    d = jnp.clip(jnp.asarray(delay_steps, state.buffer.dtype), 0, size - 1)
+    # Clamped by selection, not min/max: at d = capacity (and 0), where min/max would split
+    # the gradient between their tied arguments, the read keeps its full one-sided derivative.
+    d = jnp.asarray(delay_steps, state.buffer.dtype)
+    d = jnp.where(d > size - 1, size - 1, jnp.where(d < 0, 0, d))
     newest = state.head - 1
     if interpolation == "nearest":
         index = (newest - jnp.round(d).astype(jnp.int32)) % size
@@ -114,7 +123,7 @@ def delay_read(state: DelayState, delay_steps: ArrayLike, interpolation: str = "
             weights.append(w)
         index = (newest - start.astype(jnp.int32) - jnp.arange(n_pts, dtype=jnp.int32)) % size
         return jnp.stack(weights) @ state.buffer[index]
-    raise NotImplementedError(f"interpolation must be one of {INTERPOLATIONS}; got {interpolation!r}")
+    raise ValueError(f"interpolation must be one of {INTERPOLATIONS}; got {interpolation!r}")
 
 
 def delay_step(state: DelayState, y: jax.Array, delay_steps: ArrayLike, interpolation: str = "nearest") -> tuple[DelayState, jax.Array]:

@@ -72,6 +72,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from typing import NamedTuple
 
 import jax
@@ -79,6 +80,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from jaxflex.controllers.base import is_concrete
 from jaxflex.plant import check_dt
 
 _ABERTH_MAX_ITERS = 200
@@ -117,10 +119,10 @@ HOLDS = ("foh", "zoh")
 
 
 def check_order(order: int) -> int:
-    """The order sets array shapes, so it must be a Python int >= 1."""
-    if isinstance(order, bool) or not isinstance(order, int) or order < 1:
+    """The order sets array shapes, so it must be an integer >= 1 (returned as an int)."""
+    if isinstance(order, bool) or not isinstance(order, numbers.Integral) or order < 1:
         raise ValueError(f"pade_order must be an integer >= 1; got {order!r}")
-    return order
+    return int(order)
 
 
 def _monic_denominator(order: int) -> list[int]:
@@ -241,6 +243,8 @@ def pade_state_space(tau_s: ArrayLike, order: int) -> PadeSS:
         raise ValueError(f"tau_s must be a scalar; got shape {tau.shape}")
     if not jnp.issubdtype(tau.dtype, jnp.floating):
         tau = tau.astype(jnp.result_type(float))
+    if is_concrete(tau) and not (math.isfinite(float(tau)) and float(tau) > 0):
+        raise ValueError(f"tau_s must be a finite delay > 0 (s); got {float(tau)!r}")
     dtype = tau.dtype
     return PadeSS(jnp.asarray(A1, dtype) / tau, jnp.asarray(B1, dtype) / tau, jnp.asarray(C1, dtype), jnp.asarray(D1, dtype))
 
@@ -254,13 +258,16 @@ def _hold_integrals(ss: PadeSS, dt: ArrayLike, hold: str) -> tuple[jax.Array, ja
     n = ss.A.shape[0]
     dtype = ss.A.dtype
     dt = jnp.asarray(dt, dtype)
+    # ||A dt|| grows as N dt / tau: a delay far below dt needs more than expm's default 16
+    # squarings (NaN from tau ~ 1e-7 s at N = 8, dt = 1 ms). 64 covers any positive float tau.
+    expm = functools.partial(jax.scipy.linalg.expm, max_squarings=64)
     if hold == "zoh":
         block = jnp.zeros((n + 1, n + 1), dtype).at[:n, :n].set(ss.A * dt).at[:n, n:].set(ss.B * dt)
-        phi = jax.scipy.linalg.expm(block)
+        phi = expm(block)
         return phi[:n, :n], phi[:n, n:], jnp.zeros((n, 1), dtype)
     # u(s) = u0 + (u1 - u0) s / dt: augment with u and its (scaled) slope.
     block = jnp.zeros((n + 2, n + 2), dtype).at[:n, :n].set(ss.A * dt).at[:n, n : n + 1].set(ss.B * dt).at[n, n + 1].set(1.0)
-    phi = jax.scipy.linalg.expm(block)
+    phi = expm(block)
     return phi[:n, :n], phi[:n, n : n + 1], phi[:n, n + 1 :]
 
 

@@ -65,7 +65,6 @@ class DiscretePlant(NamedTuple):
     dt: jax.Array
 
 
-OUTPUT_NAMES = ("hub_angle_rad", "tip_deflection_m", "tip_position_m")
 METHODS = ("rk4", "zoh")
 
 

@@ -36,6 +36,7 @@ faster under ``vmap`` on CPU than a vector state with ``Ad @ x``):
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, NamedTuple
 
 import jax
@@ -105,7 +106,8 @@ class RunMetrics(NamedTuple):
 OUTPUTS = ("trajectory", "metrics")
 
 
-def _check_shapes(plant: DiscretePlant, scenario: Scenario) -> None:
+def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settling_band: float, mode_freqs_hz: Any) -> None:
+    """Shapes and dtypes of the loop's inputs, and the metrics' options, named when wrong."""
     n_x = plant.Ad.shape[-1]
     if plant.Ad.shape != (n_x, n_x):
         raise ValueError(f"Ad must be square; got {plant.Ad.shape}")
@@ -116,6 +118,26 @@ def _check_shapes(plant: DiscretePlant, scenario: Scenario) -> None:
         raise ValueError(f"scenario.force must have shape (T, 1) with T >= 1; got {scenario.force.shape}")
     if scenario.noise.shape != (steps, 2):
         raise ValueError(f"scenario.noise must have shape ({steps}, 2); got {scenario.noise.shape}")
+    dtype = plant.Ad.dtype
+    for name in ("x0", "force", "noise"):
+        if getattr(scenario, name).dtype != dtype:
+            raise ValueError(f"scenario.{name} is {getattr(scenario, name).dtype} but the plant is {dtype}: build both in one dtype")
+    for path, leaf in jax.tree_util.tree_leaves_with_path(params):
+        leaf_dtype = getattr(leaf, "dtype", None)
+        weak = getattr(getattr(leaf, "aval", leaf), "weak_type", False)
+        if leaf_dtype is not None and jnp.issubdtype(leaf_dtype, jnp.floating) and not weak and jnp.promote_types(leaf_dtype, dtype) != dtype:
+            raise ValueError(
+                f"params{jax.tree_util.keystr(path)} is {leaf_dtype}, wider than the plant's {dtype}: "
+                f"build the parameters in {dtype} (e.g. by_name(..., dtype=...))"
+            )
+    if isinstance(settling_band, bool) or not isinstance(settling_band, numbers.Real) or not 0 < settling_band < 1:
+        raise ValueError(f"settling_band must be a number in (0, 1) (a fraction of the peak); got {settling_band!r}")
+    if mode_freqs_hz is not None:
+        freqs = jnp.asarray(mode_freqs_hz)
+        if freqs.ndim > 1:
+            raise ValueError(f"mode_freqs_hz must be a 1-D array of frequencies (Hz); got shape {freqs.shape}")
+        if is_concrete(freqs) and not np.all(np.isfinite(np.asarray(freqs)) & (np.asarray(freqs) >= 0)):  # NumPy: no tracer under jit
+            raise ValueError(f"mode_freqs_hz must be finite frequencies >= 0 (Hz); got {np.asarray(freqs)}")
 
 
 def rollout(
@@ -134,18 +156,25 @@ def rollout(
       plant: sampled plant (``plant.discretize``).
       controller: any :class:`~jaxflex.controllers.base.Controller`.
       params: the controller's parameter pytree (leaves may be traced).
-      scenario: one unbatched scenario; the horizon T is ``scenario.force.shape[0]``.
+      scenario: one unbatched scenario, in the plant's dtype; the horizon T is
+        ``scenario.force.shape[0]``. Its ``plant`` perturbation is not applied here: pass
+        the perturbed plant, ``scenarios.scenario_plant(...)``, as ``plant``.
       output: ``"trajectory"`` (every sample, memory O(T)) or ``"metrics"`` (running
         metrics only, memory O(1) in T).
-      settling_band: band of the running settling time, as a fraction of the peak.
-      mode_freqs_hz: [n_f] frequencies (Hz) of ``RunMetrics.modal_energy`` (metrics only).
+      settling_band: band of the running settling time, as a fraction of the peak, in (0, 1).
+      mode_freqs_hz: [n_f] frequencies (Hz, finite, >= 0) of ``RunMetrics.modal_energy``
+        (metrics only).
+
+    Raises:
+      ValueError: naming a shape, dtype or option that is wrong (parameter values through
+        the controller's ``check`` where they are concrete).
 
     Returns:
       Trajectory with fields [T, ...], or RunMetrics. A loop that diverges returns
       non-finite or huge values; ``RunMetrics.diverged`` and
       :func:`jaxflex.analysis.metrics.diverged` report it.
     """
-    _check_shapes(plant, scenario)
+    _check_inputs(plant, scenario, params, settling_band, mode_freqs_hz)
     if output not in OUTPUTS:
         raise ValueError(f"output must be one of {OUTPUTS}; got {output!r}")
     if is_concrete(params):

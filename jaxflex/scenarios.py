@@ -19,6 +19,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from jaxflex import beam, fileio
+from jaxflex.controllers.base import is_concrete
 from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant, n_modes_of
 
 READINGS = ("printed", "block")
@@ -31,6 +32,8 @@ class Scenario(NamedTuple):
       x0: [n_x] initial state: hub angle (rad), modal amplitudes (m), then their rates.
       force: [T, 1] transverse tip force (N), held over each sample.
       noise: [T, 2] additive sensor noise on the measured hub angle (rad) and velocity (rad/s).
+      plant: the scenario's plant uncertainty, or None for the nominal plant. ``rollout``
+        does not apply it: build the perturbed plant with ``scenario_plant`` and pass it.
     """
 
     x0: jax.Array
@@ -84,34 +87,48 @@ def horizon_steps(horizon_s: float, dt: float) -> int:
     return steps
 
 
-def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, dt: float = 1e-3, reading: str = "printed", dtype=None) -> Scenario:
+def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, dt: float | None = None, reading: str = "printed", dtype=None) -> Scenario:
     """The paper's disturbance: an initial condition, no force, no noise.
 
     The paper prints ``x0 = [0 0 1e-3 0 1e-5 0]`` beside a state printed as
     ``[theta theta_dot q1 q2 q1_dot q2_dot]``.
 
     Args:
-      plant: the plant (only its number of modes is used).
+      plant: the plant (its number of modes, and a sampled plant's ``dt``).
       horizon_s: simulated time (s); the paper's figures show 3 s.
-      dt: sample time (s).
+      dt: sample time (s); default: a sampled plant's own ``dt``, else the paper's 1 ms. A
+        different ``dt`` than a sampled plant's is refused.
       reading: ``"printed"`` (default): in the printed order, q_1(0) = 1e-3 m and
         q_1_dot(0) = 1e-5 m/s. ``"block"``: the numbers read in jaxflex's state order,
         q_2(0) = 1e-3 m and q_1_dot(0) = 1e-5 m/s (needs n_modes >= 2).
       dtype: floating dtype of the arrays (default: the plant's).
     """
     n = n_modes_of(plant)
+    plant_dt = float(plant.dt) if isinstance(plant, DiscretePlant) and is_concrete(plant.dt) else None
+    if dt is None:
+        dt = 1e-3 if plant_dt is None else plant_dt
+    elif plant_dt is not None and not math.isclose(float(dt), plant_dt, rel_tol=1e-6):  # a float32 plant holds dt rounded
+        raise ValueError(f"dt = {dt!r} s differs from the sampled plant's dt = {plant_dt:.7g} s: leave dt out, or sample the plant at it")
     steps = horizon_steps(horizon_s, dt)
     dtype = plant.C.dtype if dtype is None else dtype
-    x0 = np.zeros(2 * (n + 1))
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"dtype must be a floating dtype; got {jnp.dtype(dtype)}")
+    return Scenario(jnp.asarray(_paper_x0(n, reading), dtype), jnp.zeros((steps, 1), dtype), jnp.zeros((steps, 2), dtype))
+
+
+def _paper_x0(n_modes: int, reading: str = "printed") -> np.ndarray:
+    """The paper's initial state for ``n_modes`` modes, in jaxflex's state order (see
+    ``paper_scenario``)."""
+    x0 = np.zeros(2 * (n_modes + 1))
     if reading == "printed":
-        x0[1], x0[n + 2] = 1e-3, 1e-5
+        x0[1], x0[n_modes + 2] = 1e-3, 1e-5
     elif reading == "block":
-        if n < 2:
-            raise ValueError(f"reading='block' sets q_2 and needs n_modes >= 2; got n_modes = {n}")
-        x0[2], x0[n + 2] = 1e-3, 1e-5
+        if n_modes < 2:
+            raise ValueError(f"reading='block' sets q_2 and needs n_modes >= 2; got n_modes = {n_modes}")
+        x0[2], x0[n_modes + 2] = 1e-3, 1e-5
     else:
         raise ValueError(f"reading must be one of {READINGS}; got {reading!r}")
-    return Scenario(jnp.asarray(x0, dtype), jnp.zeros((steps, 1), dtype), jnp.zeros((steps, 2), dtype))
+    return x0
 
 
 def initial_condition(x0: ArrayLike, steps: int, dtype=None) -> Scenario:
@@ -252,9 +269,7 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
             uniform(keys[9], (n,), 0.0, 1.0) * spec.payload_max_kg,
         )
     if spec.include_paper:
-        x_paper = np.zeros(2 * n_q)
-        x_paper[1], x_paper[n_q + 1] = 1e-3, 1e-5  # the paper's printed reading
-        x0 = x0.at[0].set(jnp.asarray(x_paper, dtype))
+        x0 = x0.at[0].set(jnp.asarray(_paper_x0(n_modes), dtype))
         force = force.at[0].set(0.0)
         noise = noise.at[0].set(0.0)
         if plant is not None:

@@ -24,6 +24,10 @@ from jaxflex.plant import METHODS, discretize, make_plant
 CHART_FILE = "stability_chart.png"
 JSON_FILE = "stability.json"
 _MAX_N_TAU = 80  # chart rows at most; longer delay ranges are subsampled (whole samples)
+# The chart's sampled-loop matrices carry every delay sample up to tau_max_s, and its grid
+# is one batch: at 160 samples (tau = 20 ms, the default range 8 tau) it took 54 s and
+# 4.5 GB on the 2-core machine, growing with the square of the range and beyond.
+_MAX_CHART_SAMPLES = 160
 
 
 def _check_int(name: str, value: Any, lo: int) -> int:
@@ -87,6 +91,11 @@ def run(
     d_max = int(math.floor(tau_max / dt + 1e-9))
     if d_max < 2:
         raise ValueError(f"tau_max_s must cover at least 2 samples of dt = {dt:g} s; got {tau_max:g} s")
+    if d_max > _MAX_CHART_SAMPLES:
+        raise ValueError(
+            f"the chart's delay range tau_max_s = {tau_max:g} s is {d_max} samples of dt = {dt:g} s; at most "
+            f"{_MAX_CHART_SAMPLES} are supported (default tau_max_s = 8 tau_s, so tau_s <= {_MAX_CHART_SAMPLES * dt / 8:g} s)"
+        )
     n_tau = min(d_max, _MAX_N_TAU) if n_tau is None else min(_check_int("n_tau", n_tau, 2), d_max)
     delay_grid = np.unique(np.round(np.linspace(1, d_max, n_tau)).astype(np.int64))
     k_grid = np.linspace(k_lo, k_hi, n_k)

@@ -190,3 +190,10 @@ def test_bad_mode_count_is_rejected(n):
 def test_float32_is_preserved():
     params = BeamParams(*(jnp.float32(v) if v is not None else None for v in BeamParams()))
     assert beam.modal_matrices(params, 2).M.dtype == jnp.float32
+
+
+def test_mode_shapes_refuse_positions_off_the_beam():
+    with pytest.raises(ValueError, match="x_over_l must be a 1-D array"):
+        beam.mode_shapes(0.5, 2)
+    with pytest.raises(ValueError, match=r"x_over_l must lie in \[0, 1\]"):
+        beam.mode_shapes(np.array([0.5, 2.0]), 2)

@@ -40,12 +40,32 @@ def test_linear_read_is_exact_at_whole_samples_and_interpolates_between():
     np.testing.assert_allclose(g, ys[-4, 0] - ys[-3, 0], rtol=1e-14)
 
 
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_gradient_at_the_ends_of_the_range_is_one_sided_and_whole(interpolation):
+    """At d = capacity only the derivative from below exists, and at d = 0 the one from above:
+    the read gives each in full (a min/max clamp halved them, splitting the gradient between
+    its tied arguments)."""
+    capacity = 6
+    ys = jnp.arange(20.0)[:, None] ** 3  # y = k^3: the derivative in d differs on each side
+    state = delay.delay_init(ys[0], capacity)
+    for y in ys:
+        state = delay.delay_push(state, y)
+    read = lambda d: delay.delay_read(state, d, interpolation)[0]
+    h = 1e-6
+    below = (float(read(capacity)) - float(read(capacity - h))) / h
+    above = (float(read(h)) - float(read(0.0))) / h
+    np.testing.assert_allclose(float(jax.grad(read)(float(capacity))), below, rtol=1e-5)
+    np.testing.assert_allclose(float(jax.grad(read)(0.0)), above, rtol=1e-5)
+
+
 def test_bad_arguments():
     with pytest.raises(ValueError, match="capacity must be an integer >= 1"):
         delay.delay_init(jnp.zeros(1), 0)
     with pytest.raises(ValueError, match="y0 must have shape"):
         delay.delay_init(jnp.zeros((2, 2)), 3)
-    with pytest.raises(NotImplementedError, match="interpolation must be one of"):
+    with pytest.raises(ValueError, match=r"y must have shape \(2,\)"):
+        delay.delay_push(delay.delay_init(jnp.zeros(2), 3), jnp.zeros(()))
+    with pytest.raises(ValueError, match="interpolation must be one of"):
         delay.delay_read(delay.delay_init(jnp.zeros(1), 3), 1, "sinc")
 
 
@@ -182,3 +202,13 @@ def test_changing_the_delay_does_not_retrace_a_cubic_read():
     for d in (0.2, 2.5, 5.9, 6.0):
         read(jnp.asarray(d))
     assert traces[0] == 1
+
+
+def test_numpy_integers_are_accepted_as_sizes():
+    """check_n_modes took np.int64 while capacity and the Pade order refused it."""
+    from jaxflex import pade
+
+    assert delay.check_capacity(np.int64(8)) == 8 and type(delay.check_capacity(np.int64(8))) is int
+    assert pade.check_order(np.int32(4)) == 4
+    with pytest.raises(ValueError, match="capacity must be an integer >= 1"):
+        delay.check_capacity(np.float64(8.0))

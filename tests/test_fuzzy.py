@@ -333,9 +333,9 @@ def test_validation():
         fuzzy(rules=("NMZEPM",))
     with pytest.raises(ValueError, match=r"rule 2 names unknown set"):
         fuzzy_surface(fuzzy_params(), 0.0, 0.0, rules=PAPER_RULES[:2] + (("ZE", "ZE", "BIG"),))
-    with pytest.raises(NotImplementedError, match="defuzz"):
+    with pytest.raises(ValueError, match="defuzz"):
         fuzzy(defuzz="bisector")
-    with pytest.raises(NotImplementedError, match="defuzz"):
+    with pytest.raises(ValueError, match="defuzz"):
         fuzzy_surface(fuzzy_params(), 0.0, 0.0, defuzz="mom")
 
     check = fuzzy().check
@@ -356,6 +356,13 @@ def test_validation():
         check(fuzzy_params()._replace(velocity_centres=jnp.array([-1.0, 0.0, 1.0])))
     with pytest.raises(ValueError, match=r"velocity_centres .*finite"):
         check(fuzzy_params()._replace(velocity_centres=jnp.array([-1.0, -0.5, 0.0, 0.5, jnp.nan])))
+    # the public surface and memberships check the centres too (decreasing ones gave 0 silently)
+    with pytest.raises(ValueError, match=r"torque_centres must have shape \(5,\).*strictly increasing"):
+        fuzzy_surface(fuzzy_params()._replace(torque_centres=jnp.array([1.0, 0.5, 0.0, -0.5, -1.0])), 0.3, 0.1)
+    with pytest.raises(ValueError, match=r"centres must have shape \(3,\).*strictly increasing"):
+        memberships(0.2, jnp.array([1.0, 0.0, -1.0]))
+    with pytest.raises(ValueError, match="centres must be a 1-D array of at least 2"):
+        memberships(0.2, jnp.array([[0.0, 1.0]]))
 
 
 # -- 8. float32 --------------------------------------------------------------------------------

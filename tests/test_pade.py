@@ -13,7 +13,9 @@ import pytest
 import scipy.linalg
 import scipy.signal
 
+import jaxflex as jf
 from jaxflex import pade
+from jaxflex.controllers import DFSParams, dfs
 
 TAU = 0.005  # the paper's delay (s)
 DT = 1e-3  # the paper's sample time (s)
@@ -213,3 +215,16 @@ def test_bad_arguments():
         pade.discretize_pade(pade.pade_state_space(TAU, 2), 0.0)
     with pytest.raises(ValueError, match="tau_s must be a scalar"):
         pade.pade_state_space(jnp.ones(2), 2)
+
+
+def test_delays_far_below_the_sample_time_stay_finite_and_bad_delays_are_refused():
+    """tau = 1e-7 s at N = 8 needs more than expm's default 16 squarings (NaN before); the
+    loop then behaves as with no delay at all, which is what such a delay is."""
+    plant = jf.discretize(jf.make_plant(jf.BeamParams(), 2), DT, "rk4")
+    scenario = jf.paper_scenario(plant, 0.3)
+    for order in (4, 8):
+        m = jf.rollout(plant, dfs(DT, approximation="pade", pade_order=order), DFSParams(55.0, 1e-7), scenario, output="metrics")
+        assert np.isfinite(float(m.tip_ise)) and not bool(m.diverged)
+    for bad in (0.0, -0.005, float("nan")):
+        with pytest.raises(ValueError, match="tau_s must be a finite delay > 0"):
+            pade.pade_state_space(bad, 4)

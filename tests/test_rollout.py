@@ -263,3 +263,30 @@ def test_running_metrics_report_divergence(plant2):
 def test_unknown_output_is_rejected(plant2):
     with pytest.raises(ValueError, match="output must be one of"):
         jf.rollout(plant2, open_loop(), OpenLoopParams(), paper_scenario(plant2, horizon_s=0.01), output="all")
+
+
+def test_paper_scenario_follows_the_sampled_plant_and_rollout_names_bad_inputs(plant2):
+    fast = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-4, "rk4")
+    assert paper_scenario(fast, horizon_s=0.3).force.shape == (3000, 1)  # 0.3 s at the plant's 0.1 ms
+    with pytest.raises(ValueError, match="differs from the sampled plant's dt"):
+        paper_scenario(fast, horizon_s=0.3, dt=1e-3)
+    with pytest.raises(ValueError, match="dtype must be a floating dtype"):
+        paper_scenario(plant2, dtype=jnp.int32)
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    controller, params = dfs(), DFSParams(55.0, 0.005)
+    for band in (-1.0, 0.0, 1.0, 5.0, float("nan"), True):
+        with pytest.raises(ValueError, match=r"settling_band must be a number in \(0, 1\)"):
+            jf.rollout(plant2, controller, params, sc, output="metrics", settling_band=band)
+    with pytest.raises(ValueError, match="mode_freqs_hz must be finite frequencies >= 0"):
+        jf.rollout(plant2, controller, params, sc, output="metrics", mode_freqs_hz=[float("nan")])
+    with pytest.raises(ValueError, match="mode_freqs_hz must be a 1-D array"):
+        jf.rollout(plant2, controller, params, sc, output="metrics", mode_freqs_hz=[[1.0, 2.0], [3.0, 4.0]])
+    # float32 plant and scenario (this suite runs with x64 on): float64 parameters would widen
+    # the loop's carry, which lax.scan refuses with a message about carry types.
+    plant32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), plant2)
+    sc32 = paper_scenario(plant32, horizon_s=0.01)
+    with pytest.raises(ValueError, match=r"scenario.x0 is float64 but the plant is float32"):
+        jf.rollout(plant32, controller, params, sc)
+    with pytest.raises(ValueError, match=r"params\.k1 is float64, wider than the plant's float32"):
+        jf.rollout(plant32, *jf.controllers.by_name("fuzzy", dt=1e-3, dtype=jnp.float64), sc32)
+    jf.rollout(plant32, *jf.controllers.by_name("fuzzy", dt=1e-3, dtype=jnp.float32), sc32)  # and in float32 it runs

@@ -343,3 +343,13 @@ def test_report_writes_chart_and_json(tmp_path):
     v = result["first_destabilising_validation"]
     assert v["rightmost_real_below"] < 0 < v["rightmost_real_above"]
     assert result["excluded_structural"]["multiplicity"] == 1
+
+
+def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
+    """`jaxflex stability --tau 1` once ran out of memory after 40 s (8 s of delay samples per
+    chart matrix); now it is refused at once, naming the range and the largest tau."""
+    with pytest.raises(ValueError, match=r"at most 160 are supported \(default tau_max_s = 8 tau_s, so tau_s <= 0.02 s\)"):
+        stability_report.run(tmp_path, tau_s=1.0)
+    with pytest.raises(ValueError, match="tau_max_s = 0.5 s is 500 samples"):
+        stability_report.run(tmp_path, tau_max_s=0.5)
+    assert not list(tmp_path.iterdir())

@@ -20,16 +20,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from jaxflex.controllers.base import is_concrete
+
 DIVERGENCE_THRESHOLD = 1e6
 """Default bound on |x| above which ``diverged`` reports a run as diverged."""
 
 
 ROUNDOFF_FLOOR_EPS = 16
 """Deviations below this many machine epsilons of max |s| always count as inside the settling band."""
-
-
-def _is_concrete(value: Any) -> bool:
-    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value))
 
 
 def _as_signal(s: ArrayLike, name: str = "s") -> jax.Array:
@@ -46,7 +44,7 @@ def _as_dt(dt: ArrayLike, dtype: Any) -> jax.Array:
     """``dt`` (s) as a scalar of ``dtype``; checked finite and > 0 when concrete."""
     if jnp.ndim(dt) != 0:
         raise ValueError(f"dt must be a scalar (s); got shape {jnp.shape(dt)}")
-    if _is_concrete(dt):
+    if is_concrete(dt):
         v = float(dt)
         if not (math.isfinite(v) and v > 0):
             raise ValueError(f"dt must be finite and > 0 (s); got {v}")
@@ -87,7 +85,7 @@ def settling_time(s: ArrayLike, dt: ArrayLike, *, band: float = 0.02, final_frac
         raise ValueError(f"final_fraction must be a static Python float in (0, 1]; got {final_fraction!r}")
     if not 0 < final_fraction <= 1:
         raise ValueError(f"final_fraction must be in (0, 1]; got {final_fraction}")
-    if _is_concrete(band):
+    if is_concrete(band):
         if jnp.ndim(band) != 0 or not (math.isfinite(float(band)) and float(band) > 0):
             raise ValueError(f"band must be a finite scalar > 0; got {band}")
     n_final = max(1, int(round(final_fraction * n_t)))
@@ -247,7 +245,7 @@ def samples_at(s: ArrayLike, dt: ArrayLike, times_s: Sequence[float]) -> jax.Arr
     except (TypeError, jax.errors.ConcretizationTypeError) as err:
         raise ValueError(f"times_s must be a static sequence of floats (s); got {times_s!r}") from err
     dt_arr = _as_dt(dt, s.dtype)
-    if _is_concrete(dt):
+    if is_concrete(dt):
         dt_val = float(dt)
         idx = np.floor(times / dt_val + 0.5).astype(np.int64)
         bad = (idx < 0) | (idx > n_t - 1)

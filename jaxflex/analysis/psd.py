@@ -23,6 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from jaxflex.controllers.base import is_concrete
+
 WINDOWS = ("hann", "hamming", "blackman", "boxcar")
 """Accepted window names (scipy's periodic, ``sym=False``, definitions)."""
 
@@ -83,10 +85,6 @@ class PSDSettings(NamedTuple):
             "onesided": True,
             "average": "mean",
         }
-
-
-def _is_concrete(value: Any) -> bool:
-    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value))
 
 
 def _float_dtype(x: jax.Array) -> Any:
@@ -152,7 +150,7 @@ def _validate(x_shape: tuple[int, ...], fs: Any, window: Any, nperseg: Any, nove
         raise ValueError(f"noverlap must satisfy 0 <= noverlap < nperseg = {nperseg}; got {noverlap}")
     if not any(detrend is d for d in (None, False)) and detrend not in ("constant", "linear"):
         raise ValueError(f"detrend must be one of 'constant', 'linear', None or False; got {detrend!r}")
-    if _is_concrete(fs):
+    if is_concrete(fs):
         fs_arr = np.asarray(fs)
         if fs_arr.ndim != 0:
             raise ValueError(f"fs must be a scalar (Hz); got shape {fs_arr.shape}")
@@ -342,13 +340,13 @@ def vibration_reduction_db(
         raise ValueError(
             f"psd_open and psd_closed must have the same shape [F]; got {psd_open.shape} and {psd_closed.shape}"
         )
-    if _is_concrete(rel_band):
+    if is_concrete(rel_band):
         if not (math.isfinite(float(rel_band)) and float(rel_band) > 0):
             raise ValueError(f"rel_band must be finite and > 0; got {rel_band}")
     mode_freqs_hz = jnp.atleast_1d(jnp.asarray(mode_freqs_hz))
     if mode_freqs_hz.ndim != 1:
         raise ValueError(f"mode_freqs_hz must have shape [n_modes]; got {mode_freqs_hz.shape}")
-    if _is_concrete(mode_freqs_hz):
+    if is_concrete(mode_freqs_hz):
         mf = np.asarray(mode_freqs_hz)
         if not np.all(np.isfinite(mf) & (mf > 0)):
             raise ValueError(f"mode_freqs_hz must be finite and > 0 (Hz); got {mf}")

@@ -94,12 +94,12 @@ def dfs(
       ValueError: naming the argument and its accepted values.
     """
     check_finite_scalar("dt", dt, positive=True)
-    delay.check_capacity(capacity)
+    capacity = delay.check_capacity(capacity)
     if interpolation not in delay.INTERPOLATIONS:
         raise ValueError(f"interpolation must be one of {delay.INTERPOLATIONS}; got {interpolation!r}")
     if approximation not in APPROXIMATIONS:
         raise ValueError(f"approximation must be one of {APPROXIMATIONS}; got {approximation!r}")
-    pade.check_order(pade_order)
+    pade_order = pade.check_order(pade_order)
     if pade_hold not in pade.HOLDS:
         raise ValueError(f"pade_hold must be one of {pade.HOLDS}; got {pade_hold!r}")
     dt = float(dt)

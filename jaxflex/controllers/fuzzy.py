@@ -98,7 +98,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex.controllers.base import Controller, check_finite_scalar
+from jaxflex.controllers.base import Controller, check_finite_scalar, is_concrete
 
 SET_NAMES = ("NM", "NS", "ZE", "PS", "PM")
 
@@ -211,9 +211,27 @@ def _rule_indices(rules: Sequence[Sequence[str]], set_names: Sequence[str]) -> _
     return _RuleIndices(angle=idx[:, 0], velocity=idx[:, 1], torque=idx[:, 2])
 
 
+def _check_centre_array(name: str, centres: jax.typing.ArrayLike, n_sets: int) -> None:
+    """Refuse, by name, set centres that are not ``[n_sets]``, finite and strictly increasing
+    (concrete values only: traced ones pass)."""
+    if not is_concrete(centres):
+        return
+    c = np.asarray(centres)
+    accepted = f"{name} must have shape ({n_sets},), be finite and strictly increasing"
+    if c.shape != (n_sets,):
+        raise ValueError(f"{accepted}; got shape {c.shape}")
+    if not (np.all(np.isfinite(c)) and np.all(np.diff(c) > 0)):
+        raise ValueError(f"{accepted}; got {c.tolist()}")
+
+
+def _check_centres(params: FuzzyParams, n_sets: int) -> None:
+    for name in ("angle_centres", "velocity_centres", "torque_centres"):
+        _check_centre_array(name, getattr(params, name), n_sets)
+
+
 def _check_defuzz(defuzz: str) -> None:
     if defuzz not in _DEFUZZ_METHODS:
-        raise NotImplementedError(f"defuzz must be one of {_DEFUZZ_METHODS}; got {defuzz!r}")
+        raise ValueError(f"defuzz must be one of {_DEFUZZ_METHODS}; got {defuzz!r}")
 
 
 def _check_temperature(temperature: float) -> float:
@@ -362,9 +380,15 @@ def memberships(x: jax.typing.ArrayLike, centres: jax.Array, *, temperature: flo
       they sum to 1 (for ``T > 0`` to within O(T)).
 
     Raises:
-      ValueError: for a negative or non-finite ``temperature``.
+      ValueError: for centres that are not a 1-D, finite, strictly increasing array of at
+        least 2, or a negative or non-finite ``temperature``.
     """
-    return jnp.stack(_membership_list(x, centres, _check_temperature(temperature)))
+    t = _check_temperature(temperature)
+    shape = jnp.shape(centres)
+    if len(shape) != 1 or shape[0] < 2:
+        raise ValueError(f"centres must be a 1-D array of at least 2 set centres; got shape {shape}")
+    _check_centre_array("centres", centres, shape[0])
+    return jnp.stack(_membership_list(x, centres, t))
 
 
 def _membership_list(x: jax.typing.ArrayLike, c: jax.Array, t: float) -> list[jax.Array]:
@@ -450,14 +474,12 @@ def _surface(
     if defuzz == "centroid":
         s = _group_max(w, idx.torque, c_out.shape[0], t)  # n_sets clip levels
         return _centroid(s, c_out, t)
-    if defuzz == "singleton":
-        den, num = None, None
-        for w_r, k in zip(w, idx.torque.tolist()):
-            den, num = (w_r, w_r * c_out[k]) if den is None else (den + w_r, num + w_r * c_out[k])
-        if t > 0:
-            den = den + _no_fire_mass(t)
-        return _safe_ratio(num, den)
-    raise NotImplementedError(f"defuzz must be one of {_DEFUZZ_METHODS}; got {defuzz!r}")
+    den, num = None, None  # "singleton" (the callers validate defuzz)
+    for w_r, k in zip(w, idx.torque.tolist()):
+        den, num = (w_r, w_r * c_out[k]) if den is None else (den + w_r, num + w_r * c_out[k])
+    if t > 0:
+        den = den + _no_fire_mass(t)
+    return _safe_ratio(num, den)
 
 
 def fuzzy_surface(
@@ -488,13 +510,14 @@ def fuzzy_surface(
       centres and the inputs.
 
     Raises:
-      ValueError: for a malformed rule table, non-scalar inputs or a negative or non-finite
-        ``temperature``.
-      NotImplementedError: for an unknown ``defuzz``.
+      ValueError: for a malformed rule table, centres that are not strictly increasing,
+        non-scalar inputs, a negative or non-finite ``temperature``, or an unknown ``defuzz``.
     """
     _check_defuzz(defuzz)
     t = _check_temperature(temperature)
-    return _surface(params, e, e_dot, _rule_indices(rules, set_names), defuzz, t)
+    idx = _rule_indices(rules, set_names)
+    _check_centres(params, len(tuple(set_names)))
+    return _surface(params, e, e_dot, idx, defuzz, t)
 
 
 def fuzzy(
@@ -528,9 +551,8 @@ def fuzzy(
       The controller; its parameters are a ``FuzzyParams``.
 
     Raises:
-      ValueError: naming the rule index, the unknown name and the accepted names; or
-        naming ``temperature`` and its range (finite, >= 0).
-      NotImplementedError: for an unknown ``defuzz``.
+      ValueError: naming the rule index, the unknown name and the accepted names; naming
+        ``temperature`` and its range (finite, >= 0); or for an unknown ``defuzz``.
     """
     _check_defuzz(defuzz)
     temperature = _check_temperature(temperature)
@@ -558,14 +580,6 @@ def fuzzy(
         check_finite_scalar("k1", params.k1, positive=True)
         check_finite_scalar("k2", params.k2, positive=True)
         check_finite_scalar("k3", params.k3)
-        for name in ("angle_centres", "velocity_centres", "torque_centres"):
-            c = np.asarray(getattr(params, name))
-            accepted = f"{name} must have shape ({n_sets},), be finite and strictly increasing"
-            if c.shape != (n_sets,):
-                raise ValueError(f"{accepted}; got shape {c.shape}")
-            if not np.all(np.isfinite(c)):
-                raise ValueError(f"{accepted}; got {c.tolist()}")
-            if not np.all(np.diff(c) > 0):
-                raise ValueError(f"{accepted}; got {c.tolist()}")
+        _check_centres(params, n_sets)
 
     return Controller(init, step, check)
