@@ -166,8 +166,10 @@ def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[flo
     Each percentile p < 50 whose mirror 100 - p is also given is a shaded band (inner bands
     darker), the median a solid line, and any other percentile a dashed line of its own.
     """
-    fig, ax = plt.subplots(figsize=(7.5, 3.8))
     pcts = [float(p) for p in percentiles]
+    if np.shape(bands) != (len(pcts), np.shape(t)[0]):
+        raise ValueError(f"bands must have shape (len(percentiles), len(t)) = ({len(pcts)}, {np.shape(t)[0]}); got {np.shape(bands)}")
+    fig, ax = plt.subplots(figsize=(7.5, 3.8))
     paired = sorted(p for p in pcts if p < 50 and 100 - p in pcts)  # outermost first
     for i, p in enumerate(paired):
         lo, hi = pcts.index(p), pcts.index(100 - p)

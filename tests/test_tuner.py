@@ -201,6 +201,10 @@ def test_bad_input_is_refused(tmp_path):
         TuneConfig.from_mapping({"initial": 5})
     with pytest.raises(ValueError, match=r"seed must be an integer in \[-2\*\*63, 2\*\*63\)"):
         TuneConfig(seed=-(2**63) - 1)
+    with pytest.raises(ValueError, match="matrix must be a square 2-D array"):
+        objectives.log_spectral_radius(jnp.zeros((2, 3)))
+    with pytest.raises(ValueError, match="matrix must be finite"):
+        objectives.log_spectral_radius(jnp.array([[1.0, jnp.nan], [0.0, 1.0]]))
     with pytest.raises(ValueError, match="objective must be an ObjectiveSpec"):
         TuneConfig(objective=None)
     with pytest.raises(ValueError, match="scenarios must be a ScenarioSpec"):

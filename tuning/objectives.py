@@ -24,6 +24,7 @@ from typing import Any, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxflex import fileio
 from jaxflex.rollout import RunMetrics
@@ -139,7 +140,15 @@ def log_spectral_radius(matrix: jax.Array) -> jax.Array:
     value but not the right derivative: with a complex dominant pair, ``||M^N||`` oscillates
     with the phase ``N arg(lam)``, and the derivative of that phase does not vanish as N
     grows.)
+
+    Raises:
+      ValueError: for a matrix that is not square, or (where concrete) not finite.
     """
+    shape = jnp.shape(matrix)
+    if len(shape) != 2 or shape[0] != shape[1] or shape[0] < 1:
+        raise ValueError(f"matrix must be a square 2-D array; got shape {shape}")
+    if not isinstance(matrix, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(matrix))):
+        raise ValueError("matrix must be finite; it holds inf or NaN")
     return jnp.log(jnp.max(jnp.abs(jnp.linalg.eigvals(matrix))))
 
 
