@@ -176,6 +176,12 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["controller"] == "dfs+fuzzy" and summary["params"] == named
     assert summary["controller_options"] == {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}
+    # the statistics are those of the tuned controller, run directly with its options
+    direct = MCConfig(
+        controller="dfs+fuzzy", params=named, n_scenarios=3, chunk=3, band_scenarios=2, scenarios=ScenarioSpec(horizon_s=0.05),
+        capacity=16, delay="pade", pade_order=5, fuzzy_temperature=0.03,
+    )
+    assert run_montecarlo(direct, tmp_path / "direct", progress=False, figures=False)["metrics"] == summary["metrics"]
 
 
 def test_percentile_bands_pair_each_percentile_with_its_mirror():

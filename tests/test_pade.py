@@ -222,9 +222,11 @@ def test_delays_far_below_the_sample_time_stay_finite_and_bad_delays_are_refused
     loop then behaves as with no delay at all, which is what such a delay is."""
     plant = jf.discretize(jf.make_plant(jf.BeamParams(), 2), DT, "rk4")
     scenario = jf.paper_scenario(plant, 0.3)
+    buffered = jf.rollout(plant, dfs(DT, interpolation="linear"), DFSParams(55.0, 1e-7), scenario, output="metrics")
     for order in (4, 8):
         m = jf.rollout(plant, dfs(DT, approximation="pade", pade_order=order), DFSParams(55.0, 1e-7), scenario, output="metrics")
         assert np.isfinite(float(m.tip_ise)) and not bool(m.diverged)
+        np.testing.assert_allclose(float(m.tip_ise), float(buffered.tip_ise), rtol=1e-9)
     for bad in (0.0, -0.005, float("nan")):
         with pytest.raises(ValueError, match="tau_s must be a finite delay > 0"):
             pade.pade_state_space(bad, 4)

@@ -141,8 +141,8 @@ def test_cli_refuses_bad_outputs_before_any_work(tmp_path, capsys):
     afile = tmp_path / "afile"
     afile.write_text("x")
     cases = [
-        (["reproduce", "--out", str(afile)], "--out"),
-        (["stability", "--out", str(afile)], "--out"),
+        (["reproduce", "--out", str(afile)], "is a file, not a folder"),
+        (["stability", "--out", str(afile)], "is a file, not a folder"),
         (["tune", "--out", ""], "--out must name a folder"),
         (["bench", "--json", str(tmp_path)], "--json must name a file"),
         (["bench", "--json", str(tmp_path / "missing" / "rows.jsonl")], "does not exist or is not writable"),
@@ -152,6 +152,7 @@ def test_cli_refuses_bad_outputs_before_any_work(tmp_path, capsys):
         assert cli.main(argv) == 2, argv
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err, (argv, err)
+    assert [p.name for p in tmp_path.iterdir()] == ["afile"]  # nothing was made or written
 
 
 def test_cli_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatch):

@@ -259,7 +259,6 @@ def test_checkpoint_round_trips_an_infinite_best_value(tmp_path):
     _save_checkpoint(str(tmp_path / CHECKPOINT), state)
     loaded = _load_checkpoint(str(tmp_path / CHECKPOINT), (raw, (), raw))
     assert loaded["best_val"] == float("inf") and loaded["step"] == 3
-    assert 1.0 < loaded["best_val"]
 
 
 def test_resume_from_an_unreadable_checkpoint_is_refused(tmp_path):
