@@ -353,3 +353,10 @@ def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
     with pytest.raises(ValueError, match="tau_max_s = 0.5 s is 500 samples"):
         stability_report.run(tmp_path, tau_max_s=0.5)
     assert not list(tmp_path.iterdir())
+
+
+def test_default_chart_range_fits_the_limit_at_a_fine_sample_time(tmp_path):
+    """The default range's 40 ms floor is 400 samples at dt = 0.1 ms: it is capped at the
+    chart's 160 samples, so a small delay is charted rather than refused."""
+    result = stability_report.run(tmp_path, tau_s=5e-4, dt=1e-4, n_k=3, n_cheb=8)
+    np.testing.assert_allclose(result["chart"]["tau_range_s"][1], 160 * 1e-4, rtol=1e-12)
