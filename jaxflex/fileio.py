@@ -51,15 +51,16 @@ def write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write(path, write)
 
 
-def to_jsonable(value: Any) -> Any:
-    """NumPy/JAX scalars and arrays to plain JSON values; non-finite floats become None."""
+def to_jsonable(value: Any, *, finite: bool = True) -> Any:
+    """NumPy/JAX scalars and arrays to plain JSON values; non-finite floats become None
+    (``finite=False``: kept, for files only Python reads back, as ``Infinity`` and ``NaN``)."""
     if isinstance(value, dict):
-        return {str(k): to_jsonable(v) for k, v in value.items()}
+        return {str(k): to_jsonable(v, finite=finite) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [to_jsonable(v) for v in value]
+        return [to_jsonable(v, finite=finite) for v in value]
     if hasattr(value, "tolist"):
-        return to_jsonable(value.tolist())
-    if isinstance(value, float):
+        return to_jsonable(value.tolist(), finite=finite)
+    if isinstance(value, float) and finite:
         return value if math.isfinite(value) else None
     return value
 

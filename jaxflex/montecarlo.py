@@ -179,7 +179,9 @@ class _Runner:
         return sample_scenarios(spec, jax.random.fold_in(self.key, index), self.chunk, self.config.n_modes)
 
     def run_chunk(self, index: int) -> dict[str, np.ndarray]:
-        batch = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], self.padding, axis=0)]), self.sample(index))
+        batch = self.sample(index)
+        if self.padding:
+            batch = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], self.padding, axis=0)]), batch)
         if jax.process_count() == 1:
             out = self.evaluate(jax.device_put(batch, self.sharding))
             return {k: np.asarray(v)[: self.chunk] for k, v in out.items()}

@@ -360,7 +360,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         base = "dfs" if tuned.name == "dfs" else "fuzzy"
         pair = {"open_loop": sig["open_loop"], base: sig[base], f"tuned {tuned.name}": {"q1": np.asarray(ttraj.x[:, 1]), "tip": np.asarray(ttraj.z[:, 1])}}
         div[f"tuned {tuned.name}"] = tuned_results["run"]["diverged"]
-        plotting.save(plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned[0]} ({os.path.basename(str(params_file))})"), os.path.join(out_dir, "fig_tuned_response.png"))
+        plotting.save(plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned.name} ({os.path.basename(str(params_file))})"), os.path.join(out_dir, "fig_tuned_response.png"))
 
     fileio.write_text(os.path.join(out_dir, "report.md"), _report_md(results))
     fileio.write_json(os.path.join(out_dir, "results.json"), results)

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex import fileio
+from jaxflex.controllers.base import is_concrete
 from jaxflex.rollout import RunMetrics
 
 TERMS = ("tip_ise", "hub_ise", "effort", "vibration")
@@ -147,7 +148,7 @@ def log_spectral_radius(matrix: jax.Array) -> jax.Array:
     shape = jnp.shape(matrix)
     if len(shape) != 2 or shape[0] != shape[1] or shape[0] < 1:
         raise ValueError(f"matrix must be a square 2-D array; got shape {shape}")
-    if not isinstance(matrix, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(matrix))):
+    if is_concrete(matrix) and not np.all(np.isfinite(np.asarray(matrix))):
         raise ValueError("matrix must be finite; it holds inf or NaN")
     return jnp.log(jnp.max(jnp.abs(jnp.linalg.eigvals(matrix))))
 

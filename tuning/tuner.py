@@ -125,12 +125,17 @@ class TuneConfig:
         out["initial"] = dict(self.initial)
         return out
 
-    def fingerprint(self) -> str:
-        """Hash of everything but ``steps`` (more steps may be asked of a resumed run)."""
+    def fingerprint_fields(self) -> dict[str, Any]:
+        """What a resumed run must share with the checkpoint: everything but ``steps`` (more
+        steps may be asked of a resumed run), and the dtype, as plain JSON values."""
         d = self.to_dict()
         d.pop("steps")
         d["dtype"] = str(jnp.zeros(()).dtype)
-        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+        return json.loads(json.dumps(fileio.to_jsonable(d)))
+
+    def fingerprint(self) -> str:
+        """Hash of ``fingerprint_fields``."""
+        return hashlib.sha256(json.dumps(self.fingerprint_fields(), sort_keys=True).encode()).hexdigest()[:16]
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], **overrides: Any) -> "TuneConfig":
@@ -224,7 +229,7 @@ def _save_checkpoint(path: str, state: dict[str, Any]) -> None:
 
     def write(tmp: str) -> None:
         with open(tmp, "wb") as f:
-            np.savez(f, meta=np.frombuffer(json.dumps(fileio.to_jsonable(meta)).encode(), dtype=np.uint8), **arrays)
+            np.savez(f, meta=np.frombuffer(json.dumps(fileio.to_jsonable(meta, finite=False)).encode(), dtype=np.uint8), **arrays)
 
     fileio.atomic_write(path, write)
 
@@ -238,8 +243,6 @@ def _load_checkpoint(path: str, template: tuple[Any, Any, Any]) -> dict[str, Any
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:
         raise ValueError(f"--resume: cannot read the checkpoint {path} ({type(err).__name__}: {err}); start a new run in another --out") from None
     raw, opt_state, best_raw = jax.tree.unflatten(treedef, leaves)
-    if meta["best_val"] is None:  # JSON has no inf or NaN: an initial objective that was not finite
-        meta["best_val"] = math.inf
     return {**meta, "raw": raw, "opt_state": opt_state, "best_raw": best_raw}
 
 
@@ -297,9 +300,9 @@ def tune(
         template = (problem.initial_raw, problem.optimizer.init(problem.initial_raw), problem.initial_raw)
         state = _load_checkpoint(ckpt_path, template)
         if state["fingerprint"] != fingerprint:
-            before, now = state.get("config", {}), json.loads(json.dumps(fileio.to_jsonable(config.to_dict())))
-            changed = sorted(k for k in now if k != "steps" and k in before and before[k] != now[k])
-            what = f"changed: {', '.join(changed)}" if changed else "the dtype differs: --x64"
+            before, now = state.get("config", {}), config.fingerprint_fields()
+            changed = sorted(k for k in now if k in before and before[k] != now[k])
+            what = f"changed: {', '.join(changed)}" if changed else "the configuration changed"
             raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration ({what}; fingerprint {state['fingerprint']} != {fingerprint})")
     else:
         val0 = float(problem.evaluate(problem.initial_raw, problem.heldout)[0])
@@ -314,7 +317,7 @@ def tune(
             "stopped_early": False,
             "history": [],
             "fingerprint": fingerprint,
-            "config": config.to_dict(),
+            "config": config.fingerprint_fields(),
         }
 
     bar = None
@@ -391,16 +394,13 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
         dfs_params = physical[0]
     if dfs_params is not None:
 
-        def radius(p):
-            return math.exp(float(problem.dfs_log_radius(p)))
-
-        rho = radius(dfs_params)
-        paper_rho = radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0])
+        log_rho = float(problem.dfs_log_radius(dfs_params))
+        paper_log_rho = float(problem.dfs_log_radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0]))
         out["stability"] = {
-            "spectral_radius": rho,
-            "paper_spectral_radius": paper_rho,
-            "decay_rate_per_s": -math.log(rho) / problem.dt if rho > 0 else math.inf,
-            "stable": rho < 1,
+            "spectral_radius": math.exp(log_rho),
+            "paper_spectral_radius": math.exp(paper_log_rho),
+            "decay_rate_per_s": -log_rho / problem.dt,
+            "stable": log_rho < 0,
             "note": "sampled DFS loop on the nominal plant with its delay states; the structural z = 1 (no position action) is excluded"
             + ("; the fuzzy part of dfs+fuzzy is not included (nonlinear)" if problem.config.controller == "dfs+fuzzy" else ""),
         }
