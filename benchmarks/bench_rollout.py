@@ -545,7 +545,7 @@ def render_tables(paths: list[str]) -> str:
                     out.append(f"| jaxflex | {r['dtype']} | {r['batch']} | {r['horizon']} | {_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} |")
             out.append("")
         if "ab" in kinds:
-            out.append(f"| rollout.py | fuzzy.py | mode | batch | steps/s (median) | steps/s (best) | compile s |\n|---|---|---|---:|---:|---:|---:|")
+            out.append("| rollout.py | fuzzy.py | mode | batch | steps/s (median) | steps/s (best) | compile s |\n|---|---|---|---:|---:|---:|---:|")
             for r in rows:
                 if r["kind"] == "ab":
                     label = lambda v: f"{r['rev']}" if v == "old" else "new"  # noqa: E731

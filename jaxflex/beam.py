@@ -34,6 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from jaxflex import checks
+
 
 class BeamParams(NamedTuple):
     """Physical constants of the arm, SI units; defaults are the paper's aluminium link.
@@ -123,9 +125,7 @@ def check_beam_params(params: BeamParams) -> None:
 
 def check_n_modes(n_modes: int) -> int:
     """The number of assumed modes must be a Python int >= 1 (it sets array shapes)."""
-    if isinstance(n_modes, bool) or not isinstance(n_modes, (int, np.integer)) or n_modes < 1:
-        raise ValueError(f"n_modes must be an integer >= 1; got {n_modes!r}")
-    return int(n_modes)
+    return checks.integer("n_modes", n_modes)
 
 
 @lru_cache(maxsize=None)

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex import beam, fileio
+from jaxflex import beam, checks, fileio
 from jaxflex.controllers import by_name
 from jaxflex.controllers.registry import NAMES
 from jaxflex.plant import METHODS, discretize, make_plant
@@ -97,8 +97,8 @@ class BenchConfig:
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}; got {getattr(self, name)!r}")
         for name, low in (("batch", 1), ("horizon", 2), ("runs", 1), ("capacity", DELAY_SAMPLES)):
-            _check_int(name, getattr(self, name), low)
-        _check_seconds("min_time_s", self.min_time_s)
+            object.__setattr__(self, name, checks.integer(name, getattr(self, name), low))
+        object.__setattr__(self, "min_time_s", checks.number("min_time_s", self.min_time_s, unit="seconds"))
         if self.mode == "grad" and self.controller == "open_loop":
             raise ValueError("mode='grad' needs controller parameters; the open loop has none")
 
@@ -232,16 +232,6 @@ def _cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
-def _check_int(name: str, value: Any, low: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ValueError(f"{name} must be an integer >= {low}; got {value!r}")
-
-
-def _check_seconds(name: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < float("inf"):
-        raise ValueError(f"{name} must be a finite number of seconds >= 0; got {value!r}")
-
-
 def time_calls(fn: Callable, args: tuple, runs: int, min_time_s: float = 0.0) -> dict[str, float]:
     """First-call and steady-state timings of ``fn(*args)`` (each ended by block_until_ready):
     at least ``runs`` timed calls (>= 1), and more until they add up to ``min_time_s`` seconds.
@@ -249,8 +239,8 @@ def time_calls(fn: Callable, args: tuple, runs: int, min_time_s: float = 0.0) ->
     Raises:
       ValueError: naming ``runs`` or ``min_time_s`` and the accepted range.
     """
-    _check_int("runs", runs, 1)
-    _check_seconds("min_time_s", min_time_s)
+    runs = checks.integer("runs", runs)
+    min_time_s = checks.number("min_time_s", min_time_s, unit="seconds")
     start = time.perf_counter()
     jax.block_until_ready(fn(*args))
     first = time.perf_counter() - start

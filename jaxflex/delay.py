@@ -34,12 +34,13 @@ mode. Every mode is exact at whole samples; they differ between them:
 
 from __future__ import annotations
 
-import numbers
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
+
+from jaxflex import checks
 
 INTERPOLATIONS = ("nearest", "linear", "cubic")
 _CUBIC_POINTS = 4  # nodes of the Lagrange stencil
@@ -59,9 +60,7 @@ class DelayState(NamedTuple):
 
 def check_capacity(capacity: int) -> int:
     """The capacity sets an array shape, so it must be an integer >= 1 (returned as an int)."""
-    if isinstance(capacity, bool) or not isinstance(capacity, numbers.Integral) or capacity < 1:
-        raise ValueError(f"capacity must be an integer >= 1 (samples); got {capacity!r}")
-    return int(capacity)
+    return checks.integer("capacity", capacity, unit="samples")
 
 
 def delay_init(y0: ArrayLike, capacity: int) -> DelayState:

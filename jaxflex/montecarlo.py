@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxflex import beam, fileio
+from jaxflex import beam, checks, fileio
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.registry import DELAYS, NAMES
 from jaxflex.plant import discretize, make_plant
@@ -89,11 +89,8 @@ class MCConfig:
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
         for name in ("n_scenarios", "chunk", "n_modes", "capacity", "pade_order", "band_scenarios"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1; got {v!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not -(2**63) <= self.seed < 2**63:
-            raise ValueError(f"seed must be an integer in [-2**63, 2**63); got {self.seed!r}")
+            object.__setattr__(self, name, checks.integer(name, getattr(self, name)))
+        object.__setattr__(self, "seed", checks.seed("seed", self.seed))
         if not isinstance(self.params, dict) or not all(isinstance(k, str) for k in self.params):
             raise ValueError(f"params must be a dict of parameter values by name; got {self.params!r}")
         if not isinstance(self.scenarios, ScenarioSpec):
@@ -109,9 +106,7 @@ class MCConfig:
             raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
-        t = self.fuzzy_temperature
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not (math.isfinite(t) and t >= 0):
-            raise ValueError(f"fuzzy_temperature must be a finite number >= 0; got {t!r}")
+        object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
 
     def fingerprint(self) -> str:
         d = dataclasses.asdict(self)

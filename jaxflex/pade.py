@@ -72,7 +72,6 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
 from typing import NamedTuple
 
 import jax
@@ -80,6 +79,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from jaxflex import checks
 from jaxflex.controllers.base import is_concrete
 from jaxflex.plant import check_dt
 
@@ -120,9 +120,7 @@ HOLDS = ("foh", "zoh")
 
 def check_order(order: int) -> int:
     """The order sets array shapes, so it must be an integer >= 1 (returned as an int)."""
-    if isinstance(order, bool) or not isinstance(order, numbers.Integral) or order < 1:
-        raise ValueError(f"pade_order must be an integer >= 1; got {order!r}")
-    return int(order)
+    return checks.integer("pade_order", order)
 
 
 def _monic_denominator(order: int) -> list[int]:

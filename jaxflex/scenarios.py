@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from jaxflex import beam, fileio
+from jaxflex import beam, checks, fileio
 from jaxflex.controllers.base import is_concrete
 from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant, n_modes_of
 
@@ -136,8 +136,7 @@ def initial_condition(x0: ArrayLike, steps: int, dtype=None) -> Scenario:
     x0 = jnp.asarray(x0, dtype)
     if x0.ndim != 1:
         raise ValueError(f"x0 must have shape (n_x,); got {x0.shape}")
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be an integer >= 1; got {steps!r}")
+    steps = checks.integer("steps", steps)
     return Scenario(x0, jnp.zeros((steps, 1), x0.dtype), jnp.zeros((steps, 2), x0.dtype))
 
 
@@ -193,12 +192,8 @@ class ScenarioSpec:
                 if not isinstance(value, bool):
                     raise ValueError(f"include_paper must be true or false; got {value!r}")
                 continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"{f.name} must be a finite number; got {value!r}")
-            if f.name in ("horizon_s", "dt") and value <= 0:
-                raise ValueError(f"{f.name} must be > 0 (seconds); got {value}")
-            if value < 0:
-                raise ValueError(f"{f.name} must be >= 0; got {value}")
+            value = checks.number(f.name, value, strict=f.name in ("horizon_s", "dt"))
+            object.__setattr__(self, f.name, value)
             if f.name.endswith("_rel") and value >= 1:
                 raise ValueError(f"{f.name} must be in [0, 1); got {value}")
         if self.impulse_max_n > 0 and self.impulse_duration_s < self.dt:
@@ -233,8 +228,7 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
     Returns:
       Scenario with fields [n, ...]; ``plant`` is None unless the spec perturbs the plant.
     """
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"n (number of scenarios) must be an integer >= 1; got {n!r}")
+    n = checks.integer("n (number of scenarios)", n)
     n_modes = beam.check_n_modes(n_modes)
     dtype = jnp.zeros((), dtype).dtype
     steps, dt = spec.steps, spec.dt

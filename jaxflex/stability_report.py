@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 import jaxflex
-from jaxflex import beam, fileio, plotting
+from jaxflex import beam, checks, fileio, plotting
 from jaxflex.analysis import stability as st
 from jaxflex.controllers.base import check_finite_scalar
 from jaxflex.plant import METHODS, discretize, make_plant
@@ -28,12 +28,6 @@ _MAX_N_TAU = 80  # chart rows at most; longer delay ranges are subsampled (whole
 # is one batch: at 160 samples (tau = 20 ms, the default range 8 tau) it took 54 s and
 # 4.5 GB on the 2-core machine, growing with the square of the range and beyond.
 _MAX_CHART_SAMPLES = 160
-
-
-def _check_int(name: str, value: Any, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-        raise ValueError(f"{name} must be an integer >= {lo}; got {value!r}")
-    return int(value)
 
 
 def run(
@@ -82,8 +76,8 @@ def run(
     tau = float(tau_s)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
-    n_k = _check_int("n_k", n_k, 2)
-    n_cheb = _check_int("n_cheb", n_cheb, 2)
+    n_k = checks.integer("n_k", n_k, 2)
+    n_cheb = checks.integer("n_cheb", n_cheb, 2)
     if k_range is None:
         k_range = (0.0, 3 * k) if k > 0 else ((3 * k, 0.0) if k < 0 else (0.0, 150.0))
     k_lo, k_hi = (check_finite_scalar("k_range", v) for v in k_range)
@@ -100,7 +94,7 @@ def run(
             f"the chart's delay range tau_max_s = {tau_max:g} s is {d_max} samples of dt = {dt:g} s; at most "
             f"{_MAX_CHART_SAMPLES} are supported (default tau_max_s = 8 tau_s, so tau_s <= {_MAX_CHART_SAMPLES * dt / 8:g} s)"
         )
-    n_tau = min(d_max, _MAX_N_TAU) if n_tau is None else min(_check_int("n_tau", n_tau, 2), d_max)
+    n_tau = min(d_max, _MAX_N_TAU) if n_tau is None else min(checks.integer("n_tau", n_tau, 2), d_max)
     delay_grid = np.unique(np.round(np.linspace(1, d_max, n_tau)).astype(np.int64))
     k_grid = np.linspace(k_lo, k_hi, n_k)
 

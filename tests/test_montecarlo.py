@@ -130,7 +130,7 @@ def test_statistics_do_not_depend_on_the_device_count(tmp_path, full_run):
 @pytest.mark.parametrize(
     "make, match",
     [
-        (lambda: ScenarioSpec(noise_velocity_rad_s=-0.1), "noise_velocity_rad_s must be >= 0"),
+        (lambda: ScenarioSpec(noise_velocity_rad_s=-0.1), "noise_velocity_rad_s must be a finite number >= 0"),
         (lambda: MCConfig(percentiles=(5.0, 101.0)), r"percentiles must be numbers in \[0, 100\]"),
         (lambda: MCConfig(n_scenarios=0), "n_scenarios must be an integer >= 1"),
         (lambda: MCConfig(controller="lqr"), "controller must be one of"),
@@ -199,3 +199,10 @@ def test_percentile_bands_pair_each_percentile_with_its_mirror():
         plt.close(fig)
     with pytest.raises(ValueError, match=r"bands must have shape \(len\(percentiles\), len\(t\)\) = \(2, 5\)"):
         plotting.percentile_bands(t, np.zeros((3, 5)), (10.0, 90.0), "y", "title")
+
+
+def test_numpy_scalars_are_accepted_and_stored_as_plain_numbers():
+    numpy_cfg = MCConfig(n_scenarios=np.int64(40), chunk=np.int32(8), capacity=np.int64(64), seed=np.uint64(7), fuzzy_temperature=np.float32(0.5))
+    plain_cfg = MCConfig(n_scenarios=40, chunk=8, capacity=64, seed=7, fuzzy_temperature=0.5)
+    assert type(numpy_cfg.chunk) is int and type(numpy_cfg.seed) is int and type(numpy_cfg.fuzzy_temperature) is float
+    assert numpy_cfg.fingerprint() == plain_cfg.fingerprint()

@@ -215,7 +215,7 @@ def test_bad_input_is_refused(tmp_path):
         ObjectiveSpec(worst_temperature="hot")
     with pytest.raises(ValueError, match="youngs_modulus_rel must be in"):
         ScenarioSpec(youngs_modulus_rel=1.5)
-    with pytest.raises(ValueError, match="noise_angle_rad must be >= 0"):
+    with pytest.raises(ValueError, match="noise_angle_rad must be a finite number >= 0"):
         ScenarioSpec(noise_angle_rad=-1.0)
     with pytest.raises(ValueError, match="n \\(number of scenarios\\) must be an integer >= 1"):
         sample_scenarios(ScenarioSpec(), jax.random.key(0), 0)
@@ -265,3 +265,33 @@ def test_resume_from_an_unreadable_checkpoint_is_refused(tmp_path):
     (tmp_path / CHECKPOINT).write_bytes(b"not a zip file")
     with pytest.raises(ValueError, match="--resume: cannot read the checkpoint"):
         tune(TuneConfig(controller="dfs", steps=1, **SMALL), tmp_path, resume=True, progress=False)
+
+
+def test_numpy_scalars_are_accepted_and_stored_as_plain_numbers():
+    """Values read from arrays or files may be NumPy scalars: accepted, stored as int/float, same fingerprint."""
+    numpy_cfg = TuneConfig(
+        capacity=np.int64(64),
+        pade_order=np.int32(8),
+        steps=np.int64(10),
+        seed=np.int64(3),
+        learning_rate=np.float32(0.5),
+        fuzzy_temperature=np.float64(0.02),
+        scenarios=ScenarioSpec(dt=np.float64(1e-3), horizon_s=np.float64(0.5)),
+        objective=ObjectiveSpec(cvar_level=np.float64(0.8), tip_ise=np.float64(2.0)),
+    )
+    plain_cfg = TuneConfig(
+        capacity=64,
+        pade_order=8,
+        steps=10,
+        seed=3,
+        learning_rate=float(np.float32(0.5)),
+        fuzzy_temperature=0.02,
+        scenarios=ScenarioSpec(dt=1e-3, horizon_s=0.5),
+        objective=ObjectiveSpec(cvar_level=0.8, tip_ise=2.0),
+    )
+    assert type(numpy_cfg.capacity) is int and type(numpy_cfg.seed) is int and type(numpy_cfg.learning_rate) is float
+    assert type(numpy_cfg.scenarios.dt) is float and type(numpy_cfg.objective.cvar_level) is float
+    assert numpy_cfg.fingerprint() == plain_cfg.fingerprint()
+    for bad in (True, np.bool_(True)):
+        with pytest.raises(ValueError, match="capacity must be an integer >= 1"):
+            TuneConfig(capacity=bad)

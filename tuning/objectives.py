@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from typing import Any, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex import fileio
+from jaxflex import checks, fileio
 from jaxflex.controllers.base import is_concrete
 from jaxflex.rollout import RunMetrics
 
@@ -61,18 +62,16 @@ class ObjectiveSpec:
 
     def __post_init__(self) -> None:
         for name in TERMS + ("stability_weight", "min_decay_rate"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"objective {name} must be a finite number >= 0; got {v!r}")
+            object.__setattr__(self, name, checks.number(f"objective {name}", getattr(self, name)))
         if not any(getattr(self, t) > 0 for t in TERMS):
             raise ValueError(f"at least one objective weight among {TERMS} must be > 0")
         if self.reduction not in REDUCTIONS:
             raise ValueError(f"objective reduction must be one of {REDUCTIONS}; got {self.reduction!r}")
-        level, temp = self.cvar_level, self.worst_temperature
-        if isinstance(level, bool) or not isinstance(level, (int, float)) or not (0 <= level < 1):
+        level = self.cvar_level
+        if isinstance(level, bool) or not isinstance(level, numbers.Real) or not (0 <= level < 1):
             raise ValueError(f"objective cvar_level must be a number in [0, 1); got {level!r}")
-        if isinstance(temp, bool) or not isinstance(temp, (int, float)) or not (math.isfinite(temp) and temp > 0):
-            raise ValueError(f"objective worst_temperature must be a finite number > 0; got {temp!r}")
+        object.__setattr__(self, "cvar_level", float(level))
+        object.__setattr__(self, "worst_temperature", checks.number("objective worst_temperature", self.worst_temperature, strict=True))
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "ObjectiveSpec":

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxflex import beam, fileio
+from jaxflex import beam, checks, fileio
 from jaxflex.analysis import stability
 from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.registry import PARAMETERS
@@ -91,22 +91,15 @@ class TuneConfig:
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
         for name in ("n_scenarios", "n_heldout", "steps", "eval_every", "patience", "checkpoint_every", "n_modes", "capacity", "pade_order"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1; got {v!r}")
+            object.__setattr__(self, name, checks.integer(name, getattr(self, name)))
         if self.capacity < 2:
             raise ValueError(f"capacity must be >= 2 samples; got {self.capacity}")
         for name in ("learning_rate", "clip_norm"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a finite number > 0; got {v!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not -(2**63) <= self.seed < 2**63:
-            raise ValueError(f"seed must be an integer in [-2**63, 2**63); got {self.seed!r}")
+            object.__setattr__(self, name, checks.number(name, getattr(self, name), strict=True))
+        object.__setattr__(self, "seed", checks.seed("seed", self.seed))
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
-        t = self.fuzzy_temperature
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not (math.isfinite(t) and t >= 0):
-            raise ValueError(f"fuzzy_temperature must be a finite number >= 0; got {t!r}")
+        object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
         if self.method not in ("rk4", "zoh"):
             raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
         if not isinstance(self.scenarios, ScenarioSpec):

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from jaxflex import checks
 from jaxflex.controllers.base import is_concrete
 
 WINDOWS = ("hann", "hamming", "blackman", "boxcar")
@@ -114,10 +115,9 @@ def get_window(window: str, nperseg: int, dtype: Any = None) -> jax.Array:
     """
     if not isinstance(window, str) or window not in _COSINE_COEFFS:
         raise ValueError(f"window must be one of {WINDOWS}; got {window!r}")
-    if not isinstance(nperseg, (int, np.integer)) or isinstance(nperseg, bool) or nperseg < 1:
-        raise ValueError(f"nperseg must be an int >= 1; got {nperseg!r}")
+    nperseg = checks.integer("nperseg", nperseg)
     dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
-    return _get_window(window, int(nperseg), dtype)
+    return _get_window(window, nperseg, dtype)
 
 
 @partial(jax.jit, static_argnums=(0, 1, 2))

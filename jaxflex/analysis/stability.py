@@ -71,7 +71,7 @@ import scipy.linalg
 import scipy.optimize
 from jax.typing import ArrayLike
 
-from jaxflex import beam
+from jaxflex import beam, checks
 from jaxflex.controllers.base import check_finite_scalar
 from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant
 
@@ -114,15 +114,11 @@ def delay_steps_of(tau_s: ArrayLike, dt: ArrayLike) -> int:
 
 
 def _check_delay_steps(delay_steps: int, name: str = "delay_steps") -> int:
-    if isinstance(delay_steps, bool) or not isinstance(delay_steps, (int, np.integer)) or delay_steps < 1:
-        raise ValueError(f"{name} must be an integer >= 1 (samples); got {delay_steps!r}")
-    return int(delay_steps)
+    return checks.integer(name, delay_steps, unit="samples")
 
 
 def _check_n_cheb(n_cheb: int) -> int:
-    if isinstance(n_cheb, bool) or not isinstance(n_cheb, (int, np.integer)) or n_cheb < 2:
-        raise ValueError(f"n_cheb must be an integer >= 2 (Chebyshev intervals); got {n_cheb!r}")
-    return int(n_cheb)
+    return checks.integer("n_cheb", n_cheb, 2, unit="Chebyshev intervals")
 
 
 def _plant_or_default(plant: LinearPlant | None, n_modes: int) -> LinearPlant:
