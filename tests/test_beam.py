@@ -197,3 +197,16 @@ def test_mode_shapes_refuse_positions_off_the_beam():
         beam.mode_shapes(0.5, 2)
     with pytest.raises(ValueError, match=r"x_over_l must lie in \[0, 1\]"):
         beam.mode_shapes(np.array([0.5, 2.0]), 2)
+
+
+def test_rayleigh_alpha_damps_the_rigid_hub_rotation():
+    """D = alpha M + beta K gives the rigid mode (K phi = 0) the eigenvalues 0 and -alpha: the
+    hub's free rotation decays at rate alpha (README, Conventions); alpha = 0 leaves it free."""
+    from jaxflex.plant import make_plant
+
+    alpha, _ = beam.rayleigh_coefficients(BeamParams())
+    for a, expected in ((float(alpha), float(alpha)), (0.0, 0.0)):
+        plant = make_plant(BeamParams(rayleigh_alpha=a, rayleigh_beta=6.4e-5))
+        eig = np.linalg.eigvals(np.asarray(plant.A, dtype=float))
+        real = eig[np.abs(eig.imag) < 1e-9].real
+        np.testing.assert_allclose(np.sort(real)[-2:], [-expected, 0.0], atol=1e-9 + 1e-6 * expected)
