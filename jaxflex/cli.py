@@ -121,6 +121,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     traceback) and 130 when interrupted (Ctrl-C).
     """
     args = _parser().parse_args(argv)
+    out = getattr(args, "out", None)
+    new_out = bool(out) and not os.path.lexists(out)
     try:
         return _run(args)
     except (ValueError, OSError) as err:
@@ -129,6 +131,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"jaxflex {args.command}: interrupted{_RESUME_HINT.get(args.command, '')}", file=sys.stderr)
         return 130
+    finally:
+        if new_out:
+            _remove_if_empty(out)
+
+
+def _remove_if_empty(folder: str) -> None:
+    """Remove ``folder`` (which this run created) when a failed or interrupted run wrote no
+    file in it, so that no empty result folder is left behind; a folder holding any file (a
+    checkpoint to resume from, finished results) is kept."""
+    if any(files for _, _, files in os.walk(folder)):
+        return
+    for root, _, _ in sorted(os.walk(folder), key=lambda entry: -len(entry[0])):
+        try:
+            os.rmdir(root)
+        except OSError:
+            return
 
 
 def _check_out(path: str) -> None:

@@ -166,6 +166,35 @@ def test_cli_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatc
     assert "jaxflex tune: interrupted; --resume continues from the last checkpoint" in capsys.readouterr().err
 
 
+def test_cli_failed_run_leaves_no_empty_out_folder(tmp_path, capsys, monkeypatch):
+    """An --out the run created and wrote no file in is removed on error or Ctrl-C; one that
+    existed before, or that holds a file (a checkpoint to resume from), is kept."""
+    import tuning.run
+
+    def fails_after(write: bool, error: BaseException):
+        def run_tune(config, out, **kwargs):
+            os.makedirs(os.path.join(out, "sub"))
+            if write:
+                open(os.path.join(out, "sub", "checkpoint"), "w").close()
+            raise error
+
+        return run_tune
+
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    cases = [
+        ("new", False, ValueError("bad"), 2, False),
+        ("interrupted", False, KeyboardInterrupt(), 130, False),
+        ("checkpointed", True, KeyboardInterrupt(), 130, True),
+        ("existing", False, ValueError("bad"), 2, True),
+    ]
+    for name, write, error, code, kept in cases:
+        monkeypatch.setattr(tuning.run, "run_tune", fails_after(write, error))
+        assert cli.main(["tune", "--out", str(tmp_path / name), "--no-progress"]) == code, name
+        assert (tmp_path / name).is_dir() == kept, name
+    capsys.readouterr()
+
+
 def test_cli_montecarlo_refuses_params_of_another_controller(tmp_path, capsys):
     tuned = tmp_path / "tuned.json"
     tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 60.0, "tau_s": 0.005}}))
