@@ -289,9 +289,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values["controller"] = tuned.name
         values["params"] = tuned.named
         # The controller as it was tuned (a config file's own values take precedence).
-        options = {**tuned.options, "fuzzy_temperature": tuned.options["temperature"]}
-        for key in ("capacity", "delay", "pade_order", "fuzzy_temperature"):
-            values.setdefault(key, options[key])
+        for key, value in tuned.options.items():
+            values.setdefault(key, value)
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed}
     values.update({k: v for k, v in overrides.items() if v is not None})
     summary = run_montecarlo(MCConfig(**values), args.out, resume=args.resume, progress=not args.no_progress)

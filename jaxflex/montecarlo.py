@@ -30,7 +30,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxflex import beam, checks, fileio
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
-from jaxflex.controllers.registry import DELAYS, NAMES
+from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, perturbed_params, sample_scenarios, scenario_plant
@@ -218,7 +218,7 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
         "diverged_fraction": float(diverged.mean()),
         "controller": config.controller,
         "params": dict(config.params),
-        "controller_options": {name: getattr(config, name) for name in ("capacity", "delay", "pade_order", "fuzzy_temperature")},
+        "controller_options": {name: getattr(config, name) for name in CONFIG_OPTIONS},
         "metrics": {name: _statistics(columns[name][ok].astype(np.float64), config.percentiles) for name in names},
         "metric_definitions": names,
         "percentiles": list(config.percentiles),

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxflex
-from jaxflex import beam, fileio, plotting
+from jaxflex import beam, checks, fileio, plotting
 from jaxflex.analysis import PSDSettings, signal_metrics, samples_at, vibration_reduction_db, welch
 from jaxflex.analysis.metrics import diverged
 from jaxflex.controllers import by_name
@@ -203,8 +203,8 @@ class Tuned(NamedTuple):
       controller: the controller, built with the run's ``options``.
       params: its parameters.
       named: the parameters by name (k, tau_s, k1, k2, k3).
-      options: how the run built the controller, as ``by_name``'s keywords: ``capacity``,
-        ``delay``, ``pade_order`` and ``temperature``.
+      options: how the run built the controller, under its config's keys (``CONFIG_OPTIONS``:
+        ``capacity``, ``delay``, ``pade_order`` and ``fuzzy_temperature``).
     """
 
     name: str
@@ -237,12 +237,14 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
         raise ValueError(f"--params: {path} lacks numeric parameter(s) {missing} for {name}")
     values = {n: float(named[n]) for n in needed}
     options = {
-        "capacity": int(config.get("capacity", 64)),
+        "capacity": checks.integer(f"--params: {path}'s capacity", config.get("capacity", 64)),
         "delay": config.get("delay", "linear"),
-        "pade_order": int(config.get("pade_order", 8)),
-        "temperature": float(config.get("fuzzy_temperature", 0.0)),
+        "pade_order": checks.integer(f"--params: {path}'s pade_order", config.get("pade_order", 8)),
+        "fuzzy_temperature": checks.number(f"--params: {path}'s fuzzy_temperature", config.get("fuzzy_temperature", 0.0)),
     }
-    controller, params = by_name(name, dt=DT, params=values, **options)
+    controller, params = by_name(
+        name, dt=DT, params=values, capacity=options["capacity"], delay=options["delay"], pade_order=options["pade_order"], temperature=options["fuzzy_temperature"]
+    )
     controller.check(params)
     return Tuned(name, controller, params, values, options)
 

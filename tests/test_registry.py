@@ -112,7 +112,7 @@ def test_call_sites_keep_their_configurations(tmp_path):
     path.write_text(json.dumps({"controller": "dfs+fuzzy", "params": named, "config": {"delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}}))
     name, controller, params, values, options = report.load_tuned(path)
     assert (name, values) == ("dfs+fuzzy", named)
-    assert options == {"capacity": 64, "delay": "pade", "pade_order": 5, "temperature": 0.03}
+    assert options == {"capacity": 64, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}
     hand = combine(dfs(DT, approximation="pade", pade_order=5), fuzzy(temperature=0.03)), (DFSParams(45.0, 0.006), fuzzy_params(1.1, 0.25, 0.9))
     np.testing.assert_array_equal(torques(controller, params, ys), torques(*hand, ys))
     # Monte Carlo with a tuned run's options: its runner builds that same controller

@@ -25,6 +25,9 @@ DELAYS = ("nearest", "linear", "cubic", "pade")
 PAPER_PARAMS = MappingProxyType({"k": 55.0, "tau_s": 0.005, "k1": 1.02, "k2": 0.30, "k3": 1.0})
 PARAMETERS = MappingProxyType({"open_loop": (), "dfs": ("k", "tau_s"), "fuzzy": ("k1", "k2", "k3"), "dfs+fuzzy": ("k", "tau_s", "k1", "k2", "k3")})
 """The parameter names each controller uses."""
+CONFIG_OPTIONS = ("capacity", "delay", "pade_order", "fuzzy_temperature")
+"""The keys under which a tuner or Monte Carlo config, tuned.json and summary.json record how the
+controller was built (``by_name``'s ``capacity``, ``delay``, ``pade_order`` and ``temperature``)."""
 
 
 def _values(params: Mapping[str, Any] | None) -> dict[str, float]:
