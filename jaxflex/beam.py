@@ -27,14 +27,14 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache, partial
-from typing import NamedTuple
+from typing import Any, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from jaxflex import checks
+from jaxflex import checks, fileio
 
 
 class BeamParams(NamedTuple):
@@ -121,6 +121,33 @@ def check_beam_params(params: BeamParams) -> None:
             raise ValueError(f"BeamParams.{name} must be >= 0; got {value}")
     if (params.rayleigh_alpha is None) != (params.rayleigh_beta is None):
         raise ValueError("BeamParams.rayleigh_alpha and rayleigh_beta must be given together (or both None)")
+
+
+def params_from_mapping(values: Mapping[str, Any]) -> BeamParams:
+    """``BeamParams`` from plain numbers by field name (a config's ``[beam]`` table, SI units);
+    missing fields keep the paper's values.
+
+    Raises:
+      ValueError: naming an unknown key (listing the accepted ones), a value that is not a
+        finite number, or one out of its range (``check_beam_params``).
+    """
+    fileio.check_keys(values, BeamParams._fields, "beam")
+    params = BeamParams(**{key: checks.number(f"beam {key}", value) for key, value in values.items()})
+    check_beam_params(params)
+    return params
+
+
+def plain_params(params: Any) -> BeamParams:
+    """A configuration's arm: ``params`` checked and with plain float fields (for JSON and
+    fingerprints).
+
+    Raises:
+      ValueError: naming ``beam`` when ``params`` is not a ``BeamParams``, else as
+        ``params_from_mapping``.
+    """
+    if not isinstance(params, BeamParams):
+        raise ValueError(f"beam must be a BeamParams; got {params!r}")
+    return params_from_mapping({key: value for key, value in params._asdict().items() if value is not None})
 
 
 def check_n_modes(n_modes: int) -> int:

@@ -71,7 +71,7 @@ def _parser() -> argparse.ArgumentParser:
     tun.add_argument("--steps", type=_positive_int, default=None, help="optimiser steps (default 200)")
     tun.add_argument("--seed", type=int, default=None, help="PRNG seed of the scenarios (default 0)")
     tun.add_argument("--lr", type=float, default=None, help="Adam learning rate on the unconstrained parameters (default 0.05)")
-    tun.add_argument("--config", default=None, help="TOML file: top-level TuneConfig keys and [scenarios], [objective], [initial] tables")
+    tun.add_argument("--config", default=None, help="TOML file: top-level TuneConfig keys and [scenarios], [objective], [initial] and [beam] (your arm) tables")
     tun.add_argument("--out", default="tuned", help="output folder (default ./tuned)")
     tun.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
     tun.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -82,6 +82,7 @@ def _parser() -> argparse.ArgumentParser:
     stab.add_argument("--tau", type=float, default=0.005, help="DFS delay (s), a whole number of samples (default 0.005)")
     stab.add_argument("--modes", type=_positive_int, default=2, help="number of assumed modes (default 2)")
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
+    stab.add_argument("--config", default=None, help="TOML file whose [beam] table is the arm (default the paper's); its other keys are ignored, so a tune or montecarlo config can be reused")
     stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
 
     bench = sub.add_parser("bench", help="quick benchmark of vectorised closed-loop rollouts (under two minutes); prints a table")
@@ -95,7 +96,7 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument("--scenarios", type=_positive_int, default=None, help="number of scenarios N (default 10000)")
     mc.add_argument("--chunk", type=_positive_int, default=None, help="scenarios per chunk; memory grows with it (default 4096)")
     mc.add_argument("--seed", type=int, default=None, help="PRNG seed (default 0)")
-    mc.add_argument("--config", default=None, help="TOML file: MCConfig keys (percentiles, n_modes, ...) and a [scenarios] table")
+    mc.add_argument("--config", default=None, help="TOML file: MCConfig keys (percentiles, n_modes, ...) and [scenarios] and [beam] (your arm) tables")
     mc.add_argument("--out", default="montecarlo", help="output folder (default ./montecarlo)")
     mc.add_argument("--resume", action="store_true", help="continue a run in OUT, skipping the chunks already written")
     mc.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -270,6 +271,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
         import jax
 
         jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id)
+    from jaxflex.beam import params_from_mapping
     from jaxflex.montecarlo import MCConfig, run_montecarlo
     from jaxflex.report import format_value, load_tuned
     from jaxflex.scenarios import ScenarioSpec
@@ -281,6 +283,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values["scenarios"] = ScenarioSpec.from_mapping({"horizon_s": 3.0, **table} if isinstance(table, Mapping) else table)
     if isinstance(values.get("percentiles"), list):
         values["percentiles"] = tuple(values["percentiles"])
+    if "beam" in values:
+        values["beam"] = params_from_mapping(values["beam"])
     if args.params:
         tuned = load_tuned(args.params)
         controller = args.controller or values.get("controller", tuned.name)
@@ -291,6 +295,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
         # The controller as it was tuned (a config file's own values take precedence).
         for key, value in tuned.options.items():
             values.setdefault(key, value)
+        values.setdefault("beam", tuned.beam)  # the arm it was tuned for
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed}
     values.update({k: v for k, v in overrides.items() if v is not None})
     summary = run_montecarlo(MCConfig(**values), args.out, resume=args.resume, progress=not args.no_progress)
@@ -305,7 +310,11 @@ def _montecarlo(args: argparse.Namespace) -> int:
 def _stability(args: argparse.Namespace) -> int:
     from jaxflex.stability_report import run
 
-    result = run(args.out, k=args.k, tau_s=args.tau, n_modes=args.modes, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+    from jaxflex.beam import params_from_mapping
+
+    table = fileio.read_toml(args.config).get("beam", {}) if args.config else {}
+    arm = params_from_mapping(table)
+    result = run(args.out, k=args.k, tau_s=args.tau, n_modes=args.modes, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     first = result["first_destabilising_delay_s"]
     print(f"k = {args.k:g}, tau = {args.tau:g} s, {args.modes} modes: sampled-loop spectral radius {result['spectral_radius']:.6f} "
           f"({'stable' if result['stable_sampled'] else 'unstable'}), first destabilising delay {'none' if first is None else f'{first:g} s'}")

@@ -29,6 +29,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxflex import beam, checks, fileio
+from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES
 from jaxflex.plant import discretize, make_plant
@@ -68,6 +69,8 @@ class MCConfig:
         ``DELAYS``) and the Pade order with ``delay="pade"``.
       fuzzy_temperature: smoothing temperature of the fuzzy controller (0 = faithful).
       band_scenarios: scenarios of chunk 0 whose tip deflection feeds the percentile-band plot.
+      beam: the nominal arm (plain numbers; default the paper's); plant perturbations are
+        drawn around it.
     """
 
     controller: str = "dfs+fuzzy"
@@ -84,6 +87,7 @@ class MCConfig:
     pade_order: int = 8
     fuzzy_temperature: float = 0.0
     band_scenarios: int = 256
+    beam: BeamParams = BeamParams()
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
@@ -107,9 +111,11 @@ class MCConfig:
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
+        object.__setattr__(self, "beam", beam.plain_params(self.beam))
 
     def fingerprint(self) -> str:
         d = dataclasses.asdict(self)
+        d["beam"] = self.beam._asdict()
         d.pop("n_scenarios")  # more scenarios may be asked of a resumed run
         d["percentiles"] = list(d["percentiles"])
         d["dtype"] = str(jnp.zeros(()).dtype)
@@ -146,7 +152,7 @@ class _Runner:
     def __init__(self, config: MCConfig):
         self.config = config
         spec = config.scenarios
-        self.beam = beam.BeamParams()
+        self.beam = config.beam
         self.controller, self.params = controller_and_params(
             config.controller, config.params, spec.dt, config.capacity, config.delay, config.pade_order, config.fuzzy_temperature
         )
@@ -223,6 +229,7 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
         "metric_definitions": names,
         "percentiles": list(config.percentiles),
         "scenarios": dataclasses.asdict(config.scenarios),
+        "beam": config.beam._asdict(),
         "seed": config.seed,
     }
 

@@ -174,6 +174,15 @@ def _report_md(results: dict[str, Any]) -> str:
             "",
             f"## Tuned gains ({tuned['controller']}) beside the paper's, on the paper scenario",
             "",
+        ]
+        other_arm = {k: v for k, v in tuned["beam"].items() if v != getattr(beam.BeamParams(), k)}
+        if other_arm:
+            lines += [
+                f"These gains were tuned for another arm ({', '.join(f'{k} = {v:g}' for k, v in other_arm.items())}); "
+                "they are shown here on the paper's arm.",
+                "",
+            ]
+        lines += [
             "| | parameters | q1 settling (s) | tip range (m) | tip ISE (m^2 s) |",
             "|---|---|---|---|---|",
         ]
@@ -205,6 +214,7 @@ class Tuned(NamedTuple):
       named: the parameters by name (k, tau_s, k1, k2, k3).
       options: how the run built the controller, under its config's keys (``CONFIG_OPTIONS``:
         ``capacity``, ``delay``, ``pade_order`` and ``fuzzy_temperature``).
+      beam: the arm it was tuned for (the run's ``[beam]``; the paper's when absent).
     """
 
     name: str
@@ -212,6 +222,7 @@ class Tuned(NamedTuple):
     params: Any
     named: dict[str, float]
     options: dict[str, Any]
+    beam: beam.BeamParams
 
 
 def load_tuned(path: str | os.PathLike) -> Tuned:
@@ -246,7 +257,12 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
         name, dt=DT, params=values, capacity=options["capacity"], delay=options["delay"], pade_order=options["pade_order"], temperature=options["fuzzy_temperature"]
     )
     controller.check(params)
-    return Tuned(name, controller, params, values, options)
+    arm = config.get("beam", {})
+    try:
+        tuned_beam = beam.params_from_mapping({k: v for k, v in arm.items() if v is not None} if isinstance(arm, dict) else arm)
+    except ValueError as err:
+        raise ValueError(f"--params: {path}: {err}") from None
+    return Tuned(name, controller, params, values, options, tuned_beam)
 
 
 def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[str], None] | None = None, params_file: str | os.PathLike | None = None) -> dict[str, Any]:
@@ -291,7 +307,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     if tuned is not None:
         say(f"simulating tuned {tuned.name}")
         ttraj = jax.block_until_ready(simulate(plant, tuned.controller, tuned.params, scenario))
-        tuned_results = {"controller": tuned.name, "params": tuned.named, "run": _run_metrics(ttraj, DT)}
+        tuned_results = {"controller": tuned.name, "params": tuned.named, "beam": tuned.beam._asdict(), "run": _run_metrics(ttraj, DT)}
 
     say("estimating PSDs")
     mode_freqs = freqs_model[: min(n_modes, 2)]

@@ -43,6 +43,7 @@ def run(
     n_k: int = 41,
     n_tau: int | None = None,
     n_cheb: int = st.DEFAULT_N_CHEB,
+    beam_params: beam.BeamParams | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Stability of DFS ``u = -k (theta(t) - theta(t - tau))`` on the n-mode arm.
@@ -63,6 +64,7 @@ def run(
       n_k: chart columns (>= 2).
       n_tau: chart rows (>= 2); default every sample up to tau_max_s, at most 80.
       n_cheb: Chebyshev intervals of the continuous-loop generator (>= 2).
+      beam_params: the arm (plain numbers); ``None``: the paper's.
       progress: called with a short message before each stage.
 
     Returns:
@@ -71,6 +73,7 @@ def run(
     say = progress or (lambda msg: None)
     k = st.check_gain(k)
     n_modes = beam.check_n_modes(n_modes)
+    arm = beam.plain_params(beam.BeamParams() if beam_params is None else beam_params)
     dt = check_finite_scalar("dt", dt, positive=True)
     d = st.delay_steps_of(tau_s, dt)
     tau = float(tau_s)
@@ -99,7 +102,7 @@ def run(
     k_grid = np.linspace(k_lo, k_hi, n_k)
 
     with jax.enable_x64(True):
-        plant = make_plant(n_modes=n_modes)
+        plant = make_plant(arm, n_modes)
         other = "rk4" if method == "zoh" else "zoh"
         dplant, dplant_other = discretize(plant, dt, method), discretize(plant, dt, other)
 
@@ -137,6 +140,7 @@ def run(
         "tau_s": tau,
         "delay_steps": d,
         "n_modes": n_modes,
+        "beam": arm._asdict(),
         "dt": dt,
         "method": method,
         "crossings": [

@@ -210,3 +210,23 @@ def test_rayleigh_alpha_damps_the_rigid_hub_rotation():
         eig = np.linalg.eigvals(np.asarray(plant.A, dtype=float))
         real = eig[np.abs(eig.imag) < 1e-9].real
         np.testing.assert_allclose(np.sort(real)[-2:], [-expected, 0.0], atol=1e-9 + 1e-6 * expected)
+
+
+def test_params_from_mapping_reads_a_config_table():
+    """A config's [beam] table: missing fields keep the paper's values, NumPy numbers become
+    floats, and a typo, a non-number or an out-of-range value is refused by name."""
+    arm = beam.params_from_mapping({"length_m": 0.6, "payload_mass_kg": np.float64(0.05)})
+    assert arm == BeamParams(length_m=0.6, payload_mass_kg=0.05) and type(arm.payload_mass_kg) is float
+    assert beam.plain_params(BeamParams(density_kg_m3=np.float32(2700.0))).density_kg_m3 == 2700.0
+    for table, match in (
+        ({"lenght_m": 1.0}, r"unknown beam key\(s\) \['lenght_m'\]"),
+        ({"length_m": "1"}, "beam length_m must be a finite number >= 0"),
+        ({"payload_mass_kg": float("nan")}, "beam payload_mass_kg must be a finite number >= 0"),
+        ({"length_m": 0.0}, "BeamParams.length_m must be > 0"),
+        ({"rayleigh_alpha": 1.0}, "must be given together"),
+        (5, "beam must be a table of keys"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            beam.params_from_mapping(table)
+    with pytest.raises(ValueError, match="beam must be a BeamParams"):
+        beam.plain_params({"length_m": 1.0})

@@ -11,7 +11,10 @@ import numpy as np
 import pytest
 
 import jaxflex as jf
+from jaxflex import montecarlo
+from jaxflex.beam import BeamParams
 from jaxflex.montecarlo import MCConfig, controller_and_params, run_montecarlo
+from jaxflex.plant import discretize, make_plant
 from jaxflex.scenarios import ScenarioSpec, sample_scenarios
 
 SPEC = ScenarioSpec(horizon_s=0.3, impulse_max_n=0.5, youngs_modulus_rel=0.1, noise_angle_rad=1e-6)
@@ -160,13 +163,14 @@ def test_cli_refuses_unknown_config_key(tmp_path, capsys):
 
 
 def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
-    """`--params tuned.json` takes the tuned run's delay approximation, Pade order, capacity
-    and fuzzy temperature, not the Monte Carlo defaults."""
+    """`--params tuned.json` takes the tuned run's delay approximation, Pade order, capacity,
+    fuzzy temperature and arm, not the Monte Carlo defaults."""
     from jaxflex import cli
 
     tuned = tmp_path / "tuned.json"
+    arm_table = {**BeamParams(length_m=0.6, payload_mass_kg=0.05)._asdict()}  # as tuned.json holds it, None included
     named = {"k": 45.0, "tau_s": 0.006, "k1": 1.1, "k2": 0.25, "k3": 0.9}
-    tuned.write_text(json.dumps({"controller": "dfs+fuzzy", "params": named, "config": {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}}))
+    tuned.write_text(json.dumps({"controller": "dfs+fuzzy", "params": named, "config": {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03, "beam": arm_table}}))
     config = tmp_path / "mc.toml"
     config.write_text("band_scenarios = 2\n[scenarios]\nhorizon_s = 0.05\n")
     out = tmp_path / "o"
@@ -176,12 +180,17 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["controller"] == "dfs+fuzzy" and summary["params"] == named
     assert summary["controller_options"] == {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}
+    assert summary["beam"] == arm_table
     # the statistics are those of the tuned controller, run directly with its options
     direct = MCConfig(
         controller="dfs+fuzzy", params=named, n_scenarios=3, chunk=3, band_scenarios=2, scenarios=ScenarioSpec(horizon_s=0.05),
-        capacity=16, delay="pade", pade_order=5, fuzzy_temperature=0.03,
+        capacity=16, delay="pade", pade_order=5, fuzzy_temperature=0.03, beam=BeamParams(length_m=0.6, payload_mass_kg=0.05),
     )
     assert run_montecarlo(direct, tmp_path / "direct", progress=False, figures=False)["metrics"] == summary["metrics"]
+    # and the runner simulates that arm, not the paper's
+    arm_plant = discretize(make_plant(BeamParams(length_m=0.6, payload_mass_kg=0.05)), 1e-3, direct.method)
+    np.testing.assert_allclose(montecarlo._Runner(direct).nominal.Ad, arm_plant.Ad, rtol=1e-12)
+    assert not np.allclose(arm_plant.Ad, discretize(make_plant(), 1e-3, direct.method).Ad)
 
 
 def test_percentile_bands_pair_each_percentile_with_its_mirror():

@@ -360,3 +360,32 @@ def test_default_chart_range_fits_the_limit_at_a_fine_sample_time(tmp_path):
     chart's 160 samples, so a small delay is charted rather than refused."""
     result = stability_report.run(tmp_path, tau_s=5e-4, dt=1e-4, n_k=3, n_cheb=8)
     np.testing.assert_allclose(result["chart"]["tau_range_s"][1], 160 * 1e-4, rtol=1e-12)
+
+
+def test_report_analyses_the_given_arm(tmp_path, monkeypatch):
+    """``beam_params`` is the arm analysed (its sampled-loop radius, recorded in the JSON), and
+    ``jaxflex stability --config`` reads only the file's [beam] table."""
+    from jaxflex import cli
+    from jaxflex.beam import BeamParams
+    from jaxflex.plant import discretize, make_plant
+
+    arm = BeamParams(length_m=0.6, payload_mass_kg=0.05)
+    result = stability_report.run(tmp_path / "arm", n_k=2, tau_max_s=0.006, n_cheb=8, beam_params=arm)
+    expected = float(st.spectral_radius(discretize(make_plant(arm, 2), 1e-3, "zoh"), 55.0, 5))
+    paper = float(st.spectral_radius(discretize(make_plant(BeamParams(), 2), 1e-3, "zoh"), 55.0, 5))
+    np.testing.assert_allclose(result["spectral_radius"], expected, rtol=1e-12)
+    assert abs(expected - paper) > 1e-4 and result["beam"]["length_m"] == 0.6
+
+    seen = {}
+
+    def fake_run(out, **kwargs):
+        seen.update(kwargs)
+        return {"spectral_radius": 0.5, "stable_sampled": True, "first_destabilising_delay_s": None}
+
+    monkeypatch.setattr(stability_report, "run", fake_run)
+    config = tmp_path / "tune.toml"
+    config.write_text('steps = 5\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
+    assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
+    assert seen["beam_params"] == arm
+    config.write_text("[beam]\nlength = 0.6\n")
+    assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 2

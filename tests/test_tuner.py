@@ -295,3 +295,40 @@ def test_numpy_scalars_are_accepted_and_stored_as_plain_numbers():
     for bad in (True, np.bool_(True)):
         with pytest.raises(ValueError, match="capacity must be an integer >= 1"):
             TuneConfig(capacity=bad)
+
+
+def test_config_beam_is_the_arm_that_is_tuned():
+    """A [beam] table sets the nominal arm of the run (its plant and its mode frequencies), and
+    is part of the fingerprint, so a resume onto another arm is refused."""
+    from jaxflex import beam
+    from jaxflex.beam import BeamParams
+    from jaxflex.plant import discretize, make_plant
+
+    table = {"controller": "dfs", "n_scenarios": 2, "n_heldout": 1, "scenarios": {"horizon_s": 0.05}, "beam": {"length_m": 0.6, "payload_mass_kg": 0.05}}
+    cfg = TuneConfig.from_mapping(table)
+    arm = BeamParams(length_m=0.6, payload_mass_kg=0.05)
+    assert cfg.beam == arm and cfg.to_dict()["beam"]["length_m"] == 0.6
+    assert cfg.fingerprint() != dataclasses.replace(cfg, beam=BeamParams()).fingerprint()
+    problem = Problem(cfg)
+    tree_allclose(problem.nominal, discretize(make_plant(arm, 2), 1e-3, cfg.method))
+    np.testing.assert_allclose(problem.freqs_hz, beam.natural_frequencies_hz(arm, 2))
+    assert not np.allclose(problem.freqs_hz, beam.natural_frequencies_hz(BeamParams(), 2), rtol=0.05)
+    with pytest.raises(ValueError, match=r"unknown beam key\(s\) \['length'\]"):
+        TuneConfig.from_mapping({"beam": {"length": 0.6}})
+
+
+def test_readme_config_example_is_a_valid_config(tmp_path):
+    """The README's example config file is accepted as written, [beam] table included."""
+    import pathlib
+    import re
+
+    from jaxflex import fileio
+    from jaxflex.beam import BeamParams
+
+    readme = (pathlib.Path(__file__).parent.parent / "README.md").read_text()
+    (block,) = re.findall(r"```toml\n(.*?)```", readme, re.S)
+    path = tmp_path / "tune.toml"
+    path.write_text(block)
+    cfg = TuneConfig.from_mapping(fileio.read_toml(path))
+    assert cfg.controller == "dfs+fuzzy" and cfg.objective.reduction == "cvar" and cfg.scenarios.payload_max_kg == 0.05
+    assert cfg.beam == BeamParams(length_m=0.6, thickness_m=4e-3, hub_inertia_kg_m2=2e-3, payload_mass_kg=0.1)

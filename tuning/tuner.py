@@ -26,6 +26,7 @@ import optax
 
 from jaxflex import beam, checks, fileio
 from jaxflex.analysis import stability
+from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.registry import PARAMETERS
 from jaxflex.plant import discretize, make_plant
@@ -63,6 +64,8 @@ class TuneConfig:
       fuzzy_temperature: smoothing temperature of the fuzzy controller (0 = faithful).
       initial: starting physical parameters by name (k, tau_s, k1, k2, k3); missing names
         take the paper's values.
+      beam: the nominal arm (plain numbers; default the paper's); the scenarios' plant
+        perturbations are drawn around it.
       scenarios: the scenario distribution.
       objective: the objective.
     """
@@ -86,6 +89,7 @@ class TuneConfig:
     initial: Mapping[str, float] = dataclasses.field(default_factory=dict)
     scenarios: ScenarioSpec = ScenarioSpec()
     objective: ObjectiveSpec = ObjectiveSpec()
+    beam: BeamParams = BeamParams()
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
@@ -106,6 +110,7 @@ class TuneConfig:
             raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")
         if not isinstance(self.objective, ObjectiveSpec):
             raise ValueError(f"objective must be an ObjectiveSpec; got {self.objective!r}")
+        object.__setattr__(self, "beam", beam.plain_params(self.beam))
         allowed = PARAMETERS[self.controller]
         if not isinstance(self.initial, Mapping):
             raise ValueError(f"initial must be a table of parameter values by name ({sorted(allowed)}); got {self.initial!r}")
@@ -116,6 +121,7 @@ class TuneConfig:
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
         out["initial"] = dict(self.initial)
+        out["beam"] = self.beam._asdict()
         return out
 
     def fingerprint_fields(self) -> dict[str, Any]:
@@ -132,13 +138,15 @@ class TuneConfig:
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], **overrides: Any) -> "TuneConfig":
-        """From a dict shaped like the TOML file: top-level keys, [scenarios], [objective], [initial]."""
+        """From a dict shaped like the TOML file: top-level keys, [scenarios], [objective], [initial], [beam]."""
         values = dict(values)
         fileio.check_keys(values, [f.name for f in dataclasses.fields(cls)], "config")
         if "scenarios" in values:
             values["scenarios"] = ScenarioSpec.from_mapping(values["scenarios"])
         if "objective" in values:
             values["objective"] = ObjectiveSpec.from_mapping(values["objective"])
+        if "beam" in values:
+            values["beam"] = beam.params_from_mapping(values["beam"])
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**values)
 
@@ -151,7 +159,7 @@ class Problem:
         spec = config.scenarios
         self.dt = spec.dt
         self.tc: TunedController = tuned_controller(config.controller, spec.dt, config.capacity, config.delay, config.pade_order, config.fuzzy_temperature)
-        self.beam = beam.BeamParams()
+        self.beam = config.beam
         self.freqs_hz = beam.natural_frequencies_hz(self.beam, config.n_modes)
         key_train, key_val = jax.random.split(jax.random.key(config.seed))
         self.train = sample_scenarios(spec, key_train, config.n_scenarios, config.n_modes)
