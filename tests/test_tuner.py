@@ -143,7 +143,9 @@ def tuned(tmp_path_factory):
     return get
 
 
-def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned):
+def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatch):
+    import tuning.tuner
+
     cfg, _, full = tuned("dfs")
 
     def interrupt(step):
@@ -163,6 +165,16 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned):
     assert [h["loss"] for h in resumed["history"]] == [h["loss"] for h in full["history"]]
     with pytest.raises(ValueError, match=r"another configuration \(changed: seed;"):
         tune(dataclasses.replace(cfg, seed=1), tmp_path / "cut", resume=True, progress=False)
+    # another controller has other arrays: the configuration is compared before they are read,
+    # and before any scenario is sampled or compiled
+    def no_problem(*args, **kwargs):
+        raise AssertionError("Problem built before the checkpoint's configuration was checked")
+
+    monkeypatch.setattr(tuning.tuner, "Problem", no_problem)
+    with pytest.raises(ValueError, match=r"another configuration \(changed: controller;"):
+        tune(dataclasses.replace(cfg, controller="fuzzy"), tmp_path / "cut", resume=True, progress=False)
+    with pytest.raises(ValueError, match="pass --resume"):
+        tune(cfg, tmp_path / "cut", progress=False)
 
 
 @pytest.mark.parametrize("controller", ["dfs", "fuzzy"])

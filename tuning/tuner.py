@@ -235,16 +235,19 @@ def _save_checkpoint(path: str, state: dict[str, Any]) -> None:
     fileio.atomic_write(path, write)
 
 
-def _load_checkpoint(path: str, template: tuple[Any, Any, Any]) -> dict[str, Any]:
-    treedef = jax.tree.structure(template)
+def _load_checkpoint(path: str, template: tuple[Any, Any, Any] | None = None) -> dict[str, Any]:
+    """The checkpoint's metadata and, given a ``template`` (raw, opt_state, best_raw), its arrays."""
     try:
         with np.load(path) as data:
-            meta = json.loads(bytes(data["meta"]).decode())
-            leaves = [jnp.asarray(data[f"leaf_{i}"]) for i in range(treedef.num_leaves)]
+            state = json.loads(bytes(data["meta"]).decode())
+            if template is not None:
+                treedef = jax.tree.structure(template)
+                leaves = [jnp.asarray(data[f"leaf_{i}"]) for i in range(treedef.num_leaves)]
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:
         raise ValueError(f"--resume: cannot read the checkpoint {path} ({type(err).__name__}: {err}); start a new run in another --out") from None
-    raw, opt_state, best_raw = jax.tree.unflatten(treedef, leaves)
-    return {**meta, "raw": raw, "opt_state": opt_state, "best_raw": best_raw}
+    if template is not None:
+        state["raw"], state["opt_state"], state["best_raw"] = jax.tree.unflatten(treedef, leaves)
+    return state
 
 
 def _history_csv(history: list[dict[str, Any]], names: list[str]) -> str:
@@ -286,25 +289,28 @@ def tune(
         became NaN (the last checkpoint is kept).
     """
     out_dir = os.fspath(out_dir)
-    os.makedirs(out_dir, exist_ok=True)
     ckpt_path = os.path.join(out_dir, CHECKPOINT)
-    if progress:
-        print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios, compiling", file=sys.stderr, flush=True)
-    problem = Problem(config, optimizer)
     fingerprint = config.fingerprint()
-    names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
+    # The folder and the checkpoint's configuration are checked before any sampling or compiling.
     if not resume and os.path.exists(ckpt_path):
         raise ValueError(f"{out_dir} already holds a tuning run ({CHECKPOINT}): pass --resume to continue it, or choose another --out")
     if resume:
         if not os.path.exists(ckpt_path):
             raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
-        template = (problem.initial_raw, problem.optimizer.init(problem.initial_raw), problem.initial_raw)
-        state = _load_checkpoint(ckpt_path, template)
-        if state["fingerprint"] != fingerprint:
-            before, now = state.get("config", {}), config.fingerprint_fields()
+        meta = _load_checkpoint(ckpt_path)
+        if meta["fingerprint"] != fingerprint:
+            before, now = meta.get("config", {}), config.fingerprint_fields()
             changed = sorted(k for k in now if k in before and before[k] != now[k])
             what = f"changed: {', '.join(changed)}" if changed else "the configuration changed"
-            raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration ({what}; fingerprint {state['fingerprint']} != {fingerprint})")
+            raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration ({what}; fingerprint {meta['fingerprint']} != {fingerprint})")
+    os.makedirs(out_dir, exist_ok=True)
+    if progress:
+        print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios, compiling", file=sys.stderr, flush=True)
+    problem = Problem(config, optimizer)
+    names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
+    if resume:
+        template = (problem.initial_raw, problem.optimizer.init(problem.initial_raw), problem.initial_raw)
+        state = _load_checkpoint(ckpt_path, template)
     else:
         val0 = float(problem.evaluate(problem.initial_raw, problem.heldout)[0])
         state = {
