@@ -113,13 +113,25 @@ class MCConfig:
         object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
         object.__setattr__(self, "beam", beam.plain_params(self.beam))
 
-    def fingerprint(self) -> str:
+    @property
+    def run_chunk(self) -> int:
+        """Scenarios per chunk as run: ``chunk``, or all of them when there are fewer."""
+        return min(self.chunk, self.n_scenarios)
+
+    def fingerprint_fields(self) -> dict[str, Any]:
+        """What a resumed run must share with the folder, as plain JSON values: everything but
+        ``n_scenarios`` (more may be asked of a resumed run) and ``chunk`` (the folder records
+        the chunk it was run with), and the dtype."""
         d = dataclasses.asdict(self)
         d["beam"] = self.beam._asdict()
-        d.pop("n_scenarios")  # more scenarios may be asked of a resumed run
-        d["percentiles"] = list(d["percentiles"])
+        d.pop("n_scenarios")
+        d.pop("chunk")
         d["dtype"] = str(jnp.zeros(()).dtype)
-        return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+        return json.loads(json.dumps(fileio.to_jsonable(d)))
+
+    def fingerprint(self) -> str:
+        """Hash of ``fingerprint_fields``."""
+        return hashlib.sha256(json.dumps(self.fingerprint_fields(), sort_keys=True).encode()).hexdigest()[:16]
 
 
 def controller_and_params(name: str, params: dict, dt: float, capacity: int, delay: str = "linear", pade_order: int = 8, temperature: float = 0.0) -> tuple[Controller, Any]:
@@ -160,8 +172,8 @@ class _Runner:
         self.nominal = discretize(make_plant(self.beam, config.n_modes), spec.dt, config.method)
         devices = jax.devices()
         self.n_devices = len(devices)
-        self.chunk = config.chunk
-        self.padding = -config.chunk % self.n_devices
+        self.chunk = config.run_chunk
+        self.padding = -self.chunk % self.n_devices
         self.sharding = NamedSharding(Mesh(np.array(devices), ("scenarios",)), PartitionSpec("scenarios"))
         self.key = jax.random.key(config.seed)
 
@@ -243,17 +255,17 @@ def run_montecarlo(
       ValueError: bad configuration, or a resume into a folder made by another configuration.
     """
     out_dir = os.fspath(out_dir)
-    os.makedirs(os.path.join(out_dir, "chunks"), exist_ok=True)
-    runner = _Runner(config)
     meta_path = os.path.join(out_dir, "montecarlo.json")
-    meta = {"fingerprint": config.fingerprint(), "chunk": runner.chunk}
+    meta = {"fingerprint": config.fingerprint(), "chunk": config.run_chunk, "config": config.fingerprint_fields()}
+    # The folder is checked before any sampling or compiling.
     if os.path.exists(meta_path):
-        with open(meta_path, encoding="utf-8") as f:
-            previous = json.load(f)
         if not resume:
             raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume to continue it, or choose another --out")
-        if previous != meta:
-            raise ValueError(f"--resume: {out_dir} was written by another configuration ({previous} != {meta})")
+        _check_resume(meta_path, meta)
+    elif resume:
+        raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no montecarlo.json); leave out --resume to start one")
+    os.makedirs(os.path.join(out_dir, "chunks"), exist_ok=True)
+    runner = _Runner(config)
     fileio.write_json(meta_path, meta)
 
     n_chunks = int(math.ceil(config.n_scenarios / runner.chunk))
@@ -296,6 +308,25 @@ def run_montecarlo(
     summary["figures"] = _figures(runner, merged, out_dir) if figures else []
     fileio.write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary
+
+
+def _check_resume(meta_path: str, meta: dict[str, Any]) -> None:
+    """Refuse to resume a folder written by another configuration, naming what changed."""
+    try:
+        with open(meta_path, encoding="utf-8") as f:
+            previous = json.load(f)
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"--resume: cannot read {meta_path} ({err}); start a new run in another --out") from None
+    if not isinstance(previous, dict) or previous.get("fingerprint") != meta["fingerprint"]:
+        before = previous.get("config", {}) if isinstance(previous, dict) and isinstance(previous.get("config"), dict) else {}
+        changed = sorted(k for k in meta["config"] if k in before and before[k] != meta["config"][k])
+        what = f"changed: {', '.join(changed)}" if changed else "the configuration changed"
+        raise ValueError(f"--resume: {meta_path} was written by a run with another configuration ({what})")
+    if previous.get("chunk") != meta["chunk"]:
+        raise ValueError(
+            f"--resume: the run in {os.path.dirname(meta_path)} has chunks of {previous.get('chunk')} scenarios, this one {meta['chunk']} "
+            f"(a chunk is capped at the number of scenarios); pass --chunk {previous.get('chunk')}"
+        )
 
 
 def tip_bands(runner: _Runner, percentiles: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:

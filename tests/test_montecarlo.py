@@ -84,8 +84,15 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
         run_montecarlo(config, tmp_path / "cut", progress=False)
     resumed = run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
     assert resumed["metrics"] == full["metrics"] and resumed["n_scenarios"] == 70
-    with pytest.raises(ValueError, match="another configuration"):
+    with pytest.raises(ValueError, match=r"another configuration \(changed: seed\)"):
         run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=15, seed=3, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
+    with pytest.raises(ValueError, match="has chunks of 15 scenarios, this one 16 .*; pass --chunk 15"):
+        run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=16, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
+    # resuming a folder without a Monte Carlo run is refused before anything is written
+    (tmp_path / "tune").mkdir()
+    with pytest.raises(ValueError, match="holds no Monte Carlo run"):
+        run_montecarlo(config, tmp_path / "tune", resume=True, progress=False)
+    assert not list((tmp_path / "tune").iterdir())
 
 
 # FULL_CONFIG through the command line, in float64 so that the statistics can be compared to
@@ -174,13 +181,16 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     config = tmp_path / "mc.toml"
     config.write_text("band_scenarios = 2\n[scenarios]\nhorizon_s = 0.05\n")
     out = tmp_path / "o"
-    assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "3", "--chunk", "3", "--out", str(out), "--no-progress"]) == 0
+    # the default chunk (4096) is capped at the 3 scenarios asked for
+    assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "3", "--out", str(out), "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "peak tip deflection (m): mean " in printed and ", p50 " in printed and "None" not in printed
     summary = json.loads((out / "summary.json").read_text())
     assert summary["controller"] == "dfs+fuzzy" and summary["params"] == named
     assert summary["controller_options"] == {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}
-    assert summary["beam"] == arm_table
+    assert summary["beam"] == arm_table and summary["chunk"] == 3
+    with np.load(out / "chunks" / "chunk_000000.npz") as data:
+        assert data["diverged"].shape == (3,)
     # the statistics are those of the tuned controller, run directly with its options
     direct = MCConfig(
         controller="dfs+fuzzy", params=named, n_scenarios=3, chunk=3, band_scenarios=2, scenarios=ScenarioSpec(horizon_s=0.05),
