@@ -31,7 +31,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxflex import beam, checks, fileio
 from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
-from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES
+from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, param_values
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, perturbed_params, sample_scenarios, scenario_plant
@@ -97,6 +97,7 @@ class MCConfig:
         object.__setattr__(self, "seed", checks.seed("seed", self.seed))
         if not isinstance(self.params, dict) or not all(isinstance(k, str) for k in self.params):
             raise ValueError(f"params must be a dict of parameter values by name; got {self.params!r}")
+        param_values(self.params)
         if not isinstance(self.scenarios, ScenarioSpec):
             raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")
         if (

@@ -88,8 +88,20 @@ def test_bad_options_are_refused_by_name():
         by_name("dfs", dt=DT, delay="sinc")
     with pytest.raises(ValueError, match=re.escape("params: unknown parameter name(s) ['tau']; accepted: ['k', 'tau_s', 'k1', 'k2', 'k3']")):
         by_name("dfs", dt=DT, params={"tau": 0.004})
-    with pytest.raises(ValueError, match=re.escape("params['k'] must be a number; got 'fast'")):
+    with pytest.raises(ValueError, match=re.escape("params['k'] must be a finite number; got 'fast'")):
         by_name("dfs", dt=DT, params={"k": "fast"})
+    # a bool or a numeric string is not a gain either (float() would take both), nor a NaN
+    for bad in (True, "70", float("nan")):
+        with pytest.raises(ValueError, match=re.escape(f"params['k'] must be a finite number; got {bad!r}")):
+            by_name("dfs", dt=DT, params={"k": bad})
+    assert by_name("dfs", dt=DT, params={"k": np.float32(30.0)})[1] == DFSParams(30.0, 0.005)
+    # the configurations refuse them when they are made, by the table's name
+    with pytest.raises(ValueError, match=re.escape("params['k'] must be a finite number; got True")):
+        montecarlo.MCConfig(params={"k": True})
+    from tuning.tuner import TuneConfig
+
+    with pytest.raises(ValueError, match=re.escape("initial['k'] must be a finite number; got '70'")):
+        TuneConfig(initial={"k": "70"})
 
 
 def test_unused_names_are_ignored():

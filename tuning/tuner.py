@@ -28,7 +28,7 @@ from jaxflex import beam, checks, fileio
 from jaxflex.analysis import stability
 from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
-from jaxflex.controllers.registry import PARAMETERS
+from jaxflex.controllers.registry import PARAMETERS, param_values
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, sample_scenarios, scenario_plant
@@ -117,6 +117,7 @@ class TuneConfig:
         unknown = sorted(set(self.initial) - set(allowed))
         if unknown:
             raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed)}")
+        param_values(self.initial, "initial")
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)

@@ -9,6 +9,7 @@ k1 = 1.02, k2 = 0.30, k3 = 1.0 with the paper's rules and centres).
 
 from __future__ import annotations
 
+import math
 from types import MappingProxyType
 from typing import Any, Mapping
 
@@ -30,17 +31,26 @@ CONFIG_OPTIONS = ("capacity", "delay", "pade_order", "fuzzy_temperature")
 controller was built (``by_name``'s ``capacity``, ``delay``, ``pade_order`` and ``temperature``)."""
 
 
-def _values(params: Mapping[str, Any] | None) -> dict[str, float]:
+def param_values(params: Mapping[str, Any] | None, what: str = "params") -> dict[str, float]:
+    """Every parameter by name: the given values as floats, the paper's for the others.
+
+    Raises:
+      ValueError: naming ``what[key]`` for an unknown name or a value that is not a finite
+        number (bools and strings included).
+    """
     given = dict(params or {})
     unknown = sorted(set(given) - set(PAPER_PARAMS))
     if unknown:
-        raise ValueError(f"params: unknown parameter name(s) {unknown}; accepted: {list(PAPER_PARAMS)}")
+        raise ValueError(f"{what}: unknown parameter name(s) {unknown}; accepted: {list(PAPER_PARAMS)}")
     values = dict(PAPER_PARAMS)
     for key, value in given.items():
         try:
-            values[key] = float(value)
+            number = None if isinstance(value, (bool, str, bytes)) else float(value)
         except (TypeError, ValueError):
-            raise ValueError(f"params[{key!r}] must be a number; got {value!r}") from None
+            number = None
+        if number is None or not math.isfinite(number):
+            raise ValueError(f"{what}[{key!r}] must be a finite number; got {value!r}")
+        values[key] = number
     return values
 
 
@@ -85,7 +95,7 @@ def by_name(
         raise ValueError(f"name must be one of {NAMES}; got {name!r}")
     if delay not in DELAYS:
         raise ValueError(f"delay must be one of {DELAYS}; got {delay!r}")
-    values = _values(params)
+    values = param_values(params)
     scalar = float if dtype is None else (lambda v: jnp.asarray(v, dtype))
     parts = []
     if name in ("dfs", "dfs+fuzzy"):
