@@ -6,6 +6,7 @@ no retracing when tau changes, and validation.
 Each jitted function is built once per module and reused (compilation dominates the cost).
 """
 
+import math
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -196,3 +197,17 @@ def test_validation():
             dfs(DT, capacity=16, interpolation=interpolation).check(DFSParams(K, 0.0161))
     dfs(DT, capacity=16, approximation="pade").check(DFSParams(K, 0.5))  # no capacity limit
     dfs(DT, capacity=16, interpolation="cubic").check(DFSParams(K, 0.016))  # the capacity itself
+
+
+def test_traced_tau_outside_the_buffer_is_not_clamped(jitted, plant2):
+    """Under jit, check() cannot see tau: a delay beyond the buffer (or <= 0) used to be read
+    clamped, silently simulating another delay; the torque is NaN instead and the run reports
+    itself diverged. The buffer's own ends stay valid."""
+    j = jitted("linear")  # capacity 64: tau up to 64 ms
+    for tau in (0.0641, 0.5, 0.0, -0.001):
+        assert math.isnan(j.loss(K, tau)), tau
+    for tau in (0.064, 0.001):
+        assert math.isfinite(j.loss(K, tau)) and all(math.isfinite(g) for g in j.grad(K, tau)), tau
+    sc = paper_scenario(plant2, horizon_s=STEPS * DT)
+    metrics = jax.jit(lambda t: jf.rollout(plant2, dfs(DT), DFSParams(K, t), sc, output="metrics"))
+    assert bool(metrics(0.5).diverged) and not bool(metrics(0.005).diverged)

@@ -80,7 +80,9 @@ def dfs(
     Args:
       dt: sample time (s), > 0.
       capacity: longest delay the buffer holds, in samples (static); tau <= capacity * dt.
-        Used by ``approximation="buffer"`` only.
+        Used by ``approximation="buffer"`` only. ``check`` refuses a concrete tau outside
+        ``(0, capacity dt]``; a traced one there (under ``jit``) gives a NaN torque, so the
+        run reports itself diverged instead of running with a clamped delay.
       interpolation: buffer reads: ``"nearest"`` (tau a whole number of samples),
         ``"linear"`` or ``"cubic"`` (see :mod:`jaxflex.delay`). Unused with ``"pade"``.
       approximation: ``"buffer"`` (ring buffer) or ``"pade"`` (Pade filter states; see the
@@ -118,9 +120,11 @@ def dfs(
             f = state.filt
             theta_delayed = f.C @ state.xi + f.D @ theta
             state = state._replace(xi=f.Ad @ state.xi + f.Bd @ theta)
-        else:
-            state, theta_delayed = delay.delay_step(state, theta, params.tau_s / dt, interpolation)
-        return state, -params.k * (theta - theta_delayed)
+            return state, -params.k * (theta - theta_delayed)
+        steps = params.tau_s / dt
+        state, theta_delayed = delay.delay_step(state, theta, steps, interpolation)
+        held = (steps > 0) & (steps <= capacity * (1 + _WHOLE_SAMPLE_RTOL))
+        return state, jnp.where(held, -params.k * (theta - theta_delayed), jnp.nan)
 
     def check(params: DFSParams) -> None:
         check_finite_scalar("k", params.k)
