@@ -231,8 +231,6 @@ def _reproduce_summary(results: dict) -> str:
 
 
 def _tune(args: argparse.Namespace) -> int:
-    import json
-
     from tuning.run import run_tune
     from tuning.tuner import TuneConfig
 
@@ -248,12 +246,16 @@ def _tune(args: argparse.Namespace) -> int:
     )
     summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress)
     obj = summary["objective"]
-    print(f"tuned {summary['controller']}: {json.dumps(summary['params'])} (paper: {json.dumps(summary['paper_params'])})")
+    def gains(named: dict) -> str:  # 6 digits: float32 runs store 55 as 55.00000762939453
+        return ", ".join(f"{name} = {value:.6g}" for name, value in named.items())
+
+    print(f"tuned {summary['controller']}: {gains(summary['params'])} (paper: {gains(summary['paper_params'])})")
     print(f"objective, training   {obj['train']['before']:.4g} -> {obj['train']['after']:.4g}")
     print(f"objective, held-out   {obj['heldout']['before']:.4g} -> {obj['heldout']['after']:.4g}")
     if "stability" in summary:
         st = summary["stability"]
-        print(f"sampled-loop spectral radius {st['spectral_radius']:.6f} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {st['paper_spectral_radius']:.6f})")
+        part = " of the DFS part alone (the fuzzy part is nonlinear)" if summary["controller"] == "dfs+fuzzy" else ""
+        print(f"sampled-loop spectral radius{part} {st['spectral_radius']:.6f} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {st['paper_spectral_radius']:.6f})")
     print(f"wrote {os.path.join(args.out, 'tuned.json')}, history.csv and figures")
     return 0
 
@@ -264,7 +266,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
 
     distributed = {"--coordinator": args.coordinator, "--num-processes": args.num_processes, "--process-id": args.process_id}
     if not args.distributed and any(v is not None for v in distributed.values()):
-        raise ValueError(f"{', '.join(k for k, v in distributed.items() if v is not None)} only apply with --distributed")
+        given = [k for k, v in distributed.items() if v is not None]
+        raise ValueError(f"{', '.join(given)} only appl{'ies' if len(given) == 1 else 'y'} with --distributed")
     if args.process_id is not None and args.process_id < 0:
         raise ValueError(f"--process-id must be an integer >= 0; got {args.process_id}")
     if args.distributed:

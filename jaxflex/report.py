@@ -84,7 +84,8 @@ def _report_md(results: dict[str, Any]) -> str:
     lines = [
         "# jaxflex reproduction of Ahmad, Nasir & Hambali (ISMA'09)",
         "",
-        f"Command: `jaxflex reproduce --modes {n}{' --x64' if model['dtype'] == 'float64' else ''}`. jaxflex {results['versions']['jaxflex']}, "
+        f"Command: `jaxflex reproduce --modes {n}{' --x64' if model['dtype'] == 'float64' else ''}"
+        f"{' --params ' + results['tuned']['file'] if results.get('tuned') else ''}`. jaxflex {results['versions']['jaxflex']}, "
         f"JAX {results['versions']['jax']}, {model['dtype']}, device {results['versions']['device']}.",
         f"Setting: {n}-mode assumed-mode model, RK4 at {1 / DT:g} Hz with the torque held over each sample, "
         f"{HORIZON_S:g} s, the paper's initial condition read in its printed order "
@@ -307,7 +308,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     if tuned is not None:
         say(f"simulating tuned {tuned.name}")
         ttraj = jax.block_until_ready(simulate(plant, tuned.controller, tuned.params, scenario))
-        tuned_results = {"controller": tuned.name, "params": tuned.named, "beam": tuned.beam._asdict(), "run": _run_metrics(ttraj, DT)}
+        tuned_results = {"controller": tuned.name, "file": os.fspath(params_file), "params": tuned.named, "beam": tuned.beam._asdict(), "run": _run_metrics(ttraj, DT)}
 
     say("estimating PSDs")
     mode_freqs = freqs_model[: min(n_modes, 2)]

@@ -146,7 +146,7 @@ def test_cli_refuses_bad_outputs_before_any_work(tmp_path, capsys):
         (["tune", "--out", ""], "--out must name a folder"),
         (["bench", "--json", str(tmp_path)], "--json must name a file"),
         (["bench", "--json", str(tmp_path / "missing" / "rows.jsonl")], "does not exist or is not writable"),
-        (["montecarlo", "--coordinator", "host:1234", "--out", str(tmp_path / "m")], "--coordinator only apply with --distributed"),
+        (["montecarlo", "--coordinator", "host:1234", "--out", str(tmp_path / "m")], "--coordinator only applies with --distributed"),
     ]
     for argv, message in cases:
         assert cli.main(argv) == 2, argv
@@ -220,5 +220,6 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     assert res["tuned"]["beam"]["length_m"] == 0.6
     report = (out / "report.md").read_text()
     assert "## Tuned gains (dfs) beside the paper's, on the paper scenario" in report
+    assert re.search(rf"Command: `jaxflex reproduce --modes 2( --x64)? --params {re.escape(str(tuned))}`", report)  # the tests run in float64
     assert "These gains were tuned for another arm (length_m = 0.6); they are shown here on the paper's arm." in report
     assert (out / "fig_tuned_response.png").read_bytes()[:4] == b"\x89PNG"
