@@ -167,8 +167,14 @@ class Problem:
         self.heldout = sample_scenarios(dataclasses.replace(spec, include_paper=False), key_val, config.n_heldout, config.n_modes)
         self.nominal = discretize(make_plant(self.beam, config.n_modes), spec.dt, config.method)
         initial = self.tc.from_named(dict(config.initial))
-        self.initial_raw = self.tc.to_raw(initial)
-        self.paper_raw = self.tc.to_raw(self.tc.paper)
+        try:
+            self.initial_raw = self.tc.to_raw(initial)
+        except ValueError as err:
+            raise ValueError(f"initial (missing names take the paper's values): {err}") from None
+        try:
+            self.paper_raw = self.tc.to_raw(self.tc.paper)
+        except ValueError as err:  # the objective's scales are those of the paper's gains
+            raise ValueError(f"the paper's gains, which set the objective's scales, cannot be run with dt = {self.dt:g} s and capacity = {config.capacity}: {err}") from None
         inner = optax.adam(config.learning_rate) if optimizer is None else optimizer
         self.optimizer = optax.chain(optax.clip_by_global_norm(config.clip_norm), inner)
         self.scales = jax.jit(self._terms)(self.paper_raw, self.train)
