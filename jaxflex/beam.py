@@ -316,14 +316,16 @@ def _exact_determinant(lam: float, mu: float, j: float, r: float) -> float:
     ``Y = c1 cosh + c2 cos + c3 sinh + c4 sin`` (argument lambda x / L) with Y(0) = 0,
     EI Y''(0) = -I_H w^2 Y'(0), EI Y''(L) = J_p w^2 Y'(L), EI Y'''(L) = -m_p w^2 Y(L);
     mu = I_H / (rho A L^3), j = J_p / (rho A L^3), r = m_p / (rho A L). Rows are scaled by
-    e^-lambda so the entries stay O(1).
+    e^-lambda so the entries stay O(1). The hub row ``[1, -1, mu l^3, mu l^3]`` is not: at a
+    heavy hub (mu l^3 up to 1e13) elimination through it wiped out the tip rows. The
+    determinant is affine in that row, so it is the weighted sum of the determinants with
+    ``[1, -1, 0, 0]`` and ``[0, 0, 1, 1]``, each O(1), divided by ``1 + mu l^3 > 0`` (same zeros
+    and signs).
     """
     sh, ch, s, c = math.sinh(lam), math.cosh(lam), math.sin(lam), math.cos(lam)
     scale = math.exp(-lam)
     l3 = lam**3
-    rows = [
-        [1.0, 1.0, 0.0, 0.0],
-        [1.0, -1.0, mu * l3, mu * l3],
+    tip_rows = [
         [
             scale * (ch - j * l3 * sh),
             scale * (-c + j * l3 * s),
@@ -337,7 +339,9 @@ def _exact_determinant(lam: float, mu: float, j: float, r: float) -> float:
             scale * (-c + r * lam * s),
         ],
     ]
-    return float(np.linalg.det(np.array(rows)))
+    free, clamped = (float(np.linalg.det(np.array([[1.0, 1.0, 0.0, 0.0], hub, *tip_rows]))) for hub in ([1.0, -1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.0]))
+    weight = mu * l3
+    return (free + weight * clamped) / (1.0 + weight)
 
 
 def exact_natural_frequencies_hz(params: BeamParams, n_freqs: int = 2) -> np.ndarray:

@@ -230,3 +230,19 @@ def test_params_from_mapping_reads_a_config_table():
             beam.params_from_mapping(table)
     with pytest.raises(ValueError, match="beam must be a BeamParams"):
         beam.plain_params({"length_m": 1.0})
+
+
+def test_exact_frequencies_of_a_heavy_hub_approach_the_cantilever():
+    """A very heavy hub clamps the beam: the exact frequencies tend to the clamped-free roots of
+    cos(l) cosh(l) = -1 (found here by brentq), and the assumed-mode ones stay above them. The
+    hub row of the frequency determinant once swamped the tip rows there (review: mode 4 off
+    by 1.35e-3 at I_H = 1e6 kg m^2 and below the assumed-mode model)."""
+    params = BeamParams(hub_inertia_kg_m2=1e9)  # the hub-to-beam inertia ratio (~1e-11) sets how far from clamped
+    rho_a = params.density_kg_m3 * params.width_m * params.thickness_m
+    e_i = params.youngs_modulus_pa * params.width_m * params.thickness_m**3 / 12
+    roots = [optimize.brentq(lambda x: math.cos(x) * math.cosh(x) + 1, (k - 1) * math.pi, k * math.pi, xtol=1e-15) for k in range(1, 5)]
+    cantilever = np.array(roots) ** 2 / (2 * math.pi) * math.sqrt(e_i / (rho_a * params.length_m**4))
+    exact = beam.exact_natural_frequencies_hz(params, 4)
+    np.testing.assert_allclose(exact, cantilever, rtol=1e-9)
+    assumed = np.asarray(beam.natural_frequencies_hz(params, 8))[:4]
+    assert np.all(assumed >= exact * (1 - 1e-12))
