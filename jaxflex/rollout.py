@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.analysis.metrics import DIVERGENCE_THRESHOLD
-from jaxflex.controllers.base import Controller, is_concrete
+from jaxflex.controllers.base import Controller, is_concrete, same_dt
 from jaxflex.plant import DiscretePlant
 from jaxflex.scenarios import Scenario
 
@@ -167,7 +167,9 @@ def rollout(
 
     Raises:
       ValueError: naming a shape, dtype or option that is wrong (parameter values through
-        the controller's ``check`` where they are concrete).
+        the controller's ``check`` where they are concrete), or a controller built for
+        another sample time than the plant's (a traced plant, e.g. under ``jit``, runs
+        NaN instead and reports itself diverged).
 
     Returns:
       Trajectory with fields [T, ...], or RunMetrics. A loop that diverges returns
@@ -179,6 +181,8 @@ def rollout(
         raise ValueError(f"output must be one of {OUTPUTS}; got {output!r}")
     if is_concrete(params):
         controller.check(params)
+    if controller.dt is not None and is_concrete(plant.dt) and not same_dt(controller.dt, float(plant.dt)):
+        raise ValueError(f"the controller was built for dt = {controller.dt:g} s but the plant is sampled at dt = {float(plant.dt):g} s: build both with one dt")
 
     n_x = plant.Ad.shape[0]
     steps = scenario.force.shape[0]
@@ -199,7 +203,11 @@ def rollout(
         state, u_next = controller.step(params, state, y_next)
         return x_next, state, u_next, y_next
 
+    # A traced plant (under jit) cannot refuse another dt than the controller's: its run is
+    # NaN from the start and reports itself diverged.
     x0 = tuple(scenario.x0[i] for i in range(n_x))
+    if not is_concrete(plant.dt) and controller.dt is not None:
+        x0 = tuple(jnp.where(same_dt(controller.dt, plant.dt), x_i, jnp.nan) for x_i in x0)
     y0 = jnp.stack(_matvec(C, x0)) + scenario.noise[0]
     state1, u0 = controller.step(params, controller.init(params, y0), y0)
     # noise[k + 1] for iteration k; the last iteration's controller step (its u[T] is never

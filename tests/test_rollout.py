@@ -205,6 +205,24 @@ def test_fractional_delay_accepted_with_linear_interpolation(plant2):
     assert np.all(np.isfinite(np.asarray(traj.x)))
 
 
+def test_controller_built_for_another_dt_is_rejected(plant2):
+    # dfs(dt=2e-3) reads tau = 6 ms as 3 samples: on a 1 ms plant that would simulate a 3 ms delay.
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    with pytest.raises(ValueError, match=r"controller was built for dt = 0.002 s but the plant is sampled at dt = 0.001 s"):
+        jf.rollout(plant2, dfs(dt=2e-3), DFSParams(55.0, 0.006), sc)
+    with pytest.raises(ValueError, match=r"built for dt = 0.002 s and dt = 0.001 s"):
+        combine(dfs(dt=2e-3), dfs(dt=1e-3))
+    assert combine(fuzzy(), dfs(dt=2e-3)).dt == 2e-3 and combine(pd(), fuzzy()).dt is None
+    # Under jit the plant is traced and cannot refuse: the run is NaN and reports itself diverged.
+    simulate = jax.jit(jf.rollout, static_argnums=1, static_argnames="output")
+    assert bool(simulate(plant2, dfs(dt=2e-3), DFSParams(55.0, 0.006), sc, output="metrics").diverged)
+    ok = simulate(plant2, dfs(dt=1e-3), DFSParams(55.0, 0.006), sc, output="metrics")
+    assert not bool(ok.diverged) and np.isfinite(float(ok.tip_ise))
+    # A float32 plant's dt (1e-3 rounded) is the same sample time.
+    d32 = jf.discretize(jf.make_plant(jf.BeamParams(*(jnp.float32(v) if v is not None else None for v in jf.BeamParams())), 2), 1e-3, "rk4")
+    jf.rollout(d32, dfs(), DFSParams(jnp.float32(55.0), jnp.float32(0.005)), paper_scenario(d32, horizon_s=0.01))
+
+
 def test_bad_scenario_shapes_are_rejected(plant2):
     sc = paper_scenario(plant2, horizon_s=0.01)
     with pytest.raises(ValueError, match="x0 must have shape"):

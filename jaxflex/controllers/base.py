@@ -9,6 +9,8 @@ parameters before tracing:
   sample; ``u`` is the torque ``[n_u]`` (N*m) held over the next sample.
 * ``check(params)``: raises ``ValueError`` naming the parameter and its accepted range.
   Called only with concrete (non-traced) parameters.
+* ``dt``: the sample time (s) the controller was built for, or ``None`` when its step does
+  not depend on it. ``rollout`` refuses a plant sampled at another ``dt``.
 
 The measurement of the single-link arm is ``y = [theta (rad), theta_dot (rad/s)]`` and
 ``n_u = 1``.
@@ -21,14 +23,22 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 
 class Controller(NamedTuple):
-    """A controller: ``init``, ``step`` and ``check`` (see the module docstring)."""
+    """A controller: ``init``, ``step``, ``check`` and ``dt`` (see the module docstring)."""
 
     init: Callable[[Any, jax.Array], Any]
     step: Callable[[Any, Any, jax.Array], tuple[Any, jax.Array]]
     check: Callable[[Any], None]
+    dt: float | None = None
+
+
+def same_dt(reference: float, dt: ArrayLike) -> Any:
+    """``dt`` equals the sample time ``reference`` up to float32 round-off (a plant's ``dt``
+    may be float32); a Python bool, or a traced one when ``dt`` is traced."""
+    return abs(dt - reference) <= 1e-6 * reference
 
 
 def is_concrete(tree: Any) -> bool:
@@ -77,8 +87,13 @@ def open_loop() -> Controller:
 def combine(first: Controller, second: Controller) -> Controller:
     """The sum of two controllers: ``u = u_first + u_second``.
 
-    Parameters and states are pairs ``(first, second)``.
+    Parameters and states are pairs ``(first, second)``. The sum runs at the parts' ``dt``.
+
+    Raises:
+      ValueError: when the two were built for different sample times.
     """
+    if first.dt is not None and second.dt is not None and not same_dt(first.dt, second.dt):
+        raise ValueError(f"cannot combine controllers built for dt = {first.dt:g} s and dt = {second.dt:g} s: build both with one dt")
 
     def init(params: tuple[Any, Any], y0: jax.Array) -> tuple[Any, Any]:
         return first.init(params[0], y0), second.init(params[1], y0)
@@ -94,4 +109,4 @@ def combine(first: Controller, second: Controller) -> Controller:
         first.check(params[0])
         second.check(params[1])
 
-    return Controller(init, step, check)
+    return Controller(init, step, check, first.dt if first.dt is not None else second.dt)

@@ -143,4 +143,4 @@ def dfs(
                 f"({steps:g} samples). Use interpolation='linear' or 'cubic' for fractional delays."
             )
 
-    return Controller(init, step, check)
+    return Controller(init, step, check, dt)
