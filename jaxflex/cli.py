@@ -281,15 +281,17 @@ def _montecarlo(args: argparse.Namespace) -> int:
 
     values = fileio.read_toml(args.config) if args.config else {}
     fileio.check_keys(values, [f.name for f in dataclasses.fields(MCConfig)], "config")
-    if "scenarios" in values:
-        table = values["scenarios"]
+    tuned = load_tuned(args.params) if args.params else None
+    if "scenarios" in values or tuned is not None:
+        table = values.get("scenarios", {})
+        if tuned is not None and isinstance(table, Mapping):
+            table = {"dt": tuned.dt, **table}  # the sample time it was tuned at
         values["scenarios"] = ScenarioSpec.from_mapping({"horizon_s": 3.0, **table} if isinstance(table, Mapping) else table)
     if isinstance(values.get("percentiles"), list):
         values["percentiles"] = tuple(values["percentiles"])
     if "beam" in values:
         values["beam"] = params_from_mapping(values["beam"])
-    if args.params:
-        tuned = load_tuned(args.params)
+    if tuned is not None:
         controller = args.controller or values.get("controller", tuned.name)
         if controller != tuned.name:
             raise ValueError(f"--params {args.params} holds tuned {tuned.name} parameters; the controller asked for is {controller}")

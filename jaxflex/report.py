@@ -23,6 +23,7 @@ from jaxflex import beam, checks, fileio, plotting
 from jaxflex.analysis import PSDSettings, signal_metrics, samples_at, vibration_reduction_db, welch
 from jaxflex.analysis.metrics import diverged
 from jaxflex.controllers import by_name
+from jaxflex.controllers.base import same_dt
 from jaxflex.controllers.fuzzy import fuzzy_params, fuzzy_surface
 from jaxflex.controllers.registry import PARAMETERS
 from jaxflex.plant import discretize, make_plant
@@ -210,28 +211,45 @@ class Tuned(NamedTuple):
 
     Attributes:
       name: the controller's name, one of TUNED_CONTROLLERS.
-      controller: the controller, built with the run's ``options``.
-      params: its parameters.
       named: the parameters by name (k, tau_s, k1, k2, k3).
       options: how the run built the controller, under its config's keys (``CONFIG_OPTIONS``:
         ``capacity``, ``delay``, ``pade_order`` and ``fuzzy_temperature``).
       beam: the arm it was tuned for (the run's ``[beam]``; the paper's when absent).
+      dt: the run's sample time (s; its ``[scenarios]`` dt, the paper's 1 ms when absent).
     """
 
     name: str
-    controller: Any
-    params: Any
     named: dict[str, float]
     options: dict[str, Any]
     beam: beam.BeamParams
+    dt: float
+
+    def build(self, dt: float) -> tuple[Any, Any]:
+        """The controller as it was tuned, for a loop sampled every ``dt`` seconds, and its
+        checked parameters.
+
+        Raises:
+          ValueError: when a parameter is out of range at this ``dt`` (a tuned delay longer
+            than the buffer's ``capacity`` samples of ``dt``).
+        """
+        opts = self.options
+        controller, params = by_name(
+            self.name, dt=dt, params=self.named, capacity=opts["capacity"], delay=opts["delay"], pade_order=opts["pade_order"], temperature=opts["fuzzy_temperature"]
+        )
+        try:
+            controller.check(params)
+        except ValueError as err:
+            raise ValueError(err if same_dt(self.dt, dt) else f"tuned at dt = {self.dt:g} s, run at dt = {dt:g} s: {err}") from None
+        return controller, params
 
 
 def load_tuned(path: str | os.PathLike) -> Tuned:
-    """Read tuned.json from ``jaxflex tune``: the controller as it was tuned (its delay
-    approximation, buffer capacity and fuzzy temperature come from the run's config).
+    """Read tuned.json from ``jaxflex tune``: the controller's name, parameters and options
+    (delay approximation, buffer capacity, fuzzy temperature), its arm and its sample time.
 
     Raises:
-      ValueError: naming what is missing or out of range.
+      ValueError: naming what is missing or out of range (the parameters are checked at the
+        run's own sample time).
     """
     try:
         with open(path, encoding="utf-8") as f:
@@ -254,16 +272,16 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
         "pade_order": checks.integer(f"--params: {path}'s pade_order", config.get("pade_order", 8)),
         "fuzzy_temperature": checks.number(f"--params: {path}'s fuzzy_temperature", config.get("fuzzy_temperature", 0.0)),
     }
-    controller, params = by_name(
-        name, dt=DT, params=values, capacity=options["capacity"], delay=options["delay"], pade_order=options["pade_order"], temperature=options["fuzzy_temperature"]
-    )
-    controller.check(params)
+    table = config.get("scenarios", {})
+    dt = checks.number(f"--params: {path}'s scenarios.dt", table.get("dt", DT) if isinstance(table, dict) else table, strict=True)
     arm = config.get("beam", {})
     try:
         tuned_beam = beam.params_from_mapping({k: v for k, v in arm.items() if v is not None} if isinstance(arm, dict) else arm)
+        tuned = Tuned(name, values, options, tuned_beam, dt)
+        tuned.build(dt)
     except ValueError as err:
         raise ValueError(f"--params: {path}: {err}") from None
-    return Tuned(name, controller, params, values, options, tuned_beam)
+    return tuned
 
 
 def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[str], None] | None = None, params_file: str | os.PathLike | None = None) -> dict[str, Any]:
@@ -281,6 +299,11 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     """
     n_modes = beam.check_n_modes(n_modes)
     tuned = load_tuned(params_file) if params_file is not None else None
+    if tuned is not None:
+        try:
+            tuned_controller, tuned_params = tuned.build(DT)
+        except ValueError as err:
+            raise ValueError(f"--params: {params_file} cannot run on the paper's scenario (dt = {DT:g} s): {err}") from None
     say = progress or (lambda msg: None)
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
@@ -307,7 +330,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     tuned_results = None
     if tuned is not None:
         say(f"simulating tuned {tuned.name}")
-        ttraj = jax.block_until_ready(simulate(plant, tuned.controller, tuned.params, scenario))
+        ttraj = jax.block_until_ready(simulate(plant, tuned_controller, tuned_params, scenario))
         tuned_results = {"controller": tuned.name, "file": os.fspath(params_file), "params": tuned.named, "beam": tuned.beam._asdict(), "run": _run_metrics(ttraj, DT)}
 
     say("estimating PSDs")

@@ -203,6 +203,28 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     assert not np.allclose(arm_plant.Ad, discretize(make_plant(), 1e-3, direct.method).Ad)
 
 
+def test_params_tuned_at_another_dt_run_at_that_dt(tmp_path, capsys):
+    """A tuned.json from a 2 ms run: montecarlo --params runs it at 2 ms (its 50 ms delay fits
+    the 32-sample buffer there), and reproduce --params, at the paper's 1 ms, refuses it by name."""
+    from jaxflex import cli
+
+    tuned = tmp_path / "tuned.json"
+    tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 20.0, "tau_s": 0.05}, "config": {"capacity": 32, "delay": "linear", "scenarios": {"dt": 0.002}}}))
+    config = tmp_path / "mc.toml"
+    config.write_text("band_scenarios = 2\n[scenarios]\nhorizon_s = 0.1\n")
+    out = tmp_path / "o"
+    assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "2", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scenarios"]["dt"] == 0.002 and summary["scenarios"]["horizon_s"] == 0.1
+    # a config's own dt takes precedence, and is checked against the tuned delay
+    config.write_text("[scenarios]\nhorizon_s = 0.1\ndt = 0.001\n")
+    assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "2", "--out", str(tmp_path / "p"), "--no-progress"]) == 2
+    assert "tau_s must be in (0, 0.032] s" in capsys.readouterr().err
+    assert cli.main(["reproduce", "--params", str(tuned), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "cannot run on the paper's scenario (dt = 0.001 s): tuned at dt = 0.002 s, run at dt = 0.001 s: tau_s must be in (0, 0.032] s" in err
+
+
 def test_percentile_bands_pair_each_percentile_with_its_mirror():
     """A band joins p and 100 - p; a percentile without its mirror is a line of its own (the
     p99 of (10, 50, 90, 99) was once paired with p10)."""

@@ -122,10 +122,11 @@ def test_call_sites_keep_their_configurations(tmp_path):
     path = tmp_path / "tuned.json"
     named = {"k": 45.0, "tau_s": 0.006, "k1": 1.1, "k2": 0.25, "k3": 0.9}
     path.write_text(json.dumps({"controller": "dfs+fuzzy", "params": named, "config": {"delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}}))
-    name, controller, params, values, options, arm = report.load_tuned(path)
-    assert (name, values) == ("dfs+fuzzy", named)
-    assert options == {"capacity": 64, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}
-    assert arm == beam.BeamParams()  # no [beam] in its config: the paper's arm
+    tuned = report.load_tuned(path)
+    assert (tuned.name, tuned.named) == ("dfs+fuzzy", named)
+    assert tuned.options == {"capacity": 64, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}
+    assert tuned.beam == beam.BeamParams() and tuned.dt == DT  # no [beam] or [scenarios]: the paper's arm and dt
+    controller, params = tuned.build(DT)
     hand = combine(dfs(DT, approximation="pade", pade_order=5), fuzzy(temperature=0.03)), (DFSParams(45.0, 0.006), fuzzy_params(1.1, 0.25, 0.9))
     np.testing.assert_array_equal(torques(controller, params, ys), torques(*hand, ys))
     # Monte Carlo with a tuned run's options: its runner builds that same controller
