@@ -70,8 +70,13 @@ def write_json(path: str | os.PathLike, data: Any) -> None:
     write_text(path, json.dumps(to_jsonable(data), indent=2, allow_nan=False) + "\n")
 
 
-def read_toml(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a TOML file into a dict (``tomllib``; ``tomli`` on Python 3.10)."""
+def read_toml(path: str | os.PathLike, option: str = "--config") -> dict[str, Any]:
+    """Read a TOML file into a dict (``tomllib``; ``tomli`` on Python 3.10).
+
+    Raises:
+      ValueError: naming ``option`` (the command-line option that gave ``path``) when the
+        file cannot be read or is not valid TOML.
+    """
     try:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10
@@ -79,8 +84,10 @@ def read_toml(path: str | os.PathLike) -> dict[str, Any]:
     try:
         with open(path, "rb") as f:
             return tomllib.load(f)
+    except OSError as err:
+        raise ValueError(f"{option}: cannot read {path}: {err.strerror or err}") from None
     except tomllib.TOMLDecodeError as err:
-        raise ValueError(f"{path} is not valid TOML: {err}") from None
+        raise ValueError(f"{option}: {path} is not valid TOML: {err}") from None
 
 
 def check_keys(values: Any, accepted: Any, what: str) -> None:

@@ -195,6 +195,16 @@ def test_cli_failed_run_leaves_no_empty_out_folder(tmp_path, capsys, monkeypatch
     capsys.readouterr()
 
 
+def test_cli_unreadable_config_is_named(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("k = [\n")
+    for command in ("tune", "montecarlo", "stability"):
+        for path, reason in ((tmp_path / "missing.toml", "cannot read .*missing.toml: No such file or directory"), (bad, ".*bad.toml is not valid TOML")):
+            assert cli.main([command, "--config", str(path), "--out", str(tmp_path / command)]) == 2
+            assert re.search(f"jaxflex {command}: error: --config: {reason}", capsys.readouterr().err), (command, path)
+            assert not (tmp_path / command).exists()
+
+
 def test_cli_montecarlo_refuses_params_of_another_controller(tmp_path, capsys):
     tuned = tmp_path / "tuned.json"
     tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 60.0, "tau_s": 0.005}}))

@@ -10,7 +10,7 @@ chosen by ``approximation``):
 
 * ``"buffer"`` (default): a ring buffer (:mod:`jaxflex.delay`) of static capacity. With
   ``interpolation="nearest"`` tau must be a whole number of samples (checked on concrete
-  parameters); ``"linear"`` and ``"cubic"`` read between samples, so tau is a
+  parameters; a traced tau, under ``jit`` or ``vmap``, is read at the nearest sample); ``"linear"`` and ``"cubic"`` read between samples, so tau is a
   differentiable parameter, up to ``capacity * dt``.
 * ``"pade"``: the ``[N/N]`` Pade approximant of ``e^{-s tau}`` (:mod:`jaxflex.pade`), sampled
   exactly at ``dt``, filters the measured angle. Its N states replace the buffer; tau is
