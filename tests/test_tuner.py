@@ -93,6 +93,23 @@ def test_log_spectral_radius_gradient_matches_fd(plant2, k, delay_steps):
     assert float(g_d) == pytest.approx(fd_d, rel=RTOL_FD)
 
 
+@pytest.mark.parametrize("delay_steps", [3.0, 5.0])
+def test_log_spectral_radius_gradient_at_a_whole_delay(plant2, delay_steps):
+    """At a whole number of samples the interpolated delay has a kink in d, and the derivative
+    is the one from above (the rollout's convention). It once lost the term of slot d + 1, which
+    was left out of the live history there, and had the wrong sign (+0.0059 against -0.0024 at
+    d = 5, k = 55, the tuner's usual start after the to_raw round trip)."""
+    capacity = 8
+
+    def exact(d):
+        return np.log(np.abs(np.linalg.eigvals(np.asarray(stability.deflated_loop_matrix(plant2, 55.0, d, capacity)))).max())
+
+    g_d = jax.grad(lambda d: objectives.log_spectral_radius(stability.deflated_loop_matrix(plant2, 55.0, d, capacity)))(jnp.asarray(delay_steps))
+    h = 1e-6
+    from_above = (exact(delay_steps + 2 * h) - exact(delay_steps + h)) / h  # one-sided, clear of the kink
+    assert float(g_d) == pytest.approx(from_above, rel=1e-4)
+
+
 def test_tuner_objective_gradient_matches_fd():
     cfg = TuneConfig(controller="dfs", **SMALL, objective=ObjectiveSpec(tip_ise=1.0, hub_ise=0.3, effort=0.1, vibration=0.5, min_decay_rate=50.0))
     problem = Problem(cfg)

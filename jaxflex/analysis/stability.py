@@ -583,8 +583,8 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
       plant: sampled plant (any ``discretize`` method: the map is exact for its Ad, Bd).
       k: gain (N*m/rad); may be traced.
       delay_steps: d >= 1 samples. An integer when ``n_hist`` is None (then ``n_hist = d``);
-        with ``n_hist`` given it may be traced (vmap over delays): history slots beyond d are
-        neither shifted nor read, so they add only semisimple zero eigenvalues (no defective
+        with ``n_hist`` given it may be traced (vmap over delays): history slots beyond
+        floor(d) + 1 are neither shifted nor read, so they add only semisimple zero eigenvalues (no defective
         block whose computed eigenvalues would scatter by eps^(1/size)).
       n_hist: static history length >= d.
 
@@ -600,7 +600,8 @@ def _loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_h
 
     ``theta(t - d dt) ~ (1 - f) theta_{k-w} + f theta_{k-w-1}`` with ``w = floor(d)``, ``f = d - w``:
     exactly the rollout with ``dfs(interpolation="linear")`` (and with "nearest" at whole d).
-    History slots beyond ``ceil(d)`` are neither shifted nor read.
+    History slots beyond ``floor(d) + 1`` are neither shifted nor read. At a whole d slot d + 1
+    is read with weight ``f = 0``, so it is kept live: the derivative in d (from above) reads it.
     """
     Ad, Bd = plant.Ad, plant.Bd
     dtype = Ad.dtype
@@ -612,8 +613,8 @@ def _loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_h
     lags = jnp.arange(n_hist + 1, dtype=dtype)  # weights on theta_{k-j}, j = 0..n_hist
     weights = (1 - frac) * (lags == whole) + frac * (lags == whole + 1)
     slots = jnp.arange(1, n_hist + 1, dtype=dtype)
-    live = jnp.ceil(d)
-    shift = (slots[:, None] == slots[None, :] + 1) & (slots[:, None] <= live)  # h_i <- h_{i-1}, i <= ceil(d)
+    live = whole + 1
+    shift = (slots[:, None] == slots[None, :] + 1) & (slots[:, None] <= live)  # h_i <- h_{i-1}, i <= floor(d) + 1
     top = jnp.concatenate([Ad - k * (1 - weights[0]) * Bd @ c, k * Bd @ weights[None, 1:]], axis=1)
     first = (slots == 1).astype(dtype)[:, None] * c  # h_1 <- theta_k
     hist = jnp.concatenate([first, shift.astype(dtype)], axis=1)
@@ -633,7 +634,7 @@ def deflated_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayL
 def _deflated(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, v: jax.Array, n_hist: int) -> jax.Array:
     """``Q2^T M Q2`` with Q2 the orthonormal complement of the structural eigenvectors; v: [n_x, n0]."""
     dtype = v.dtype
-    live = (jnp.arange(1, n_hist + 1, dtype=dtype) <= jnp.ceil(jnp.asarray(delay_steps, dtype))).astype(dtype)[:, None]
+    live = (jnp.arange(1, n_hist + 1, dtype=dtype) <= jnp.floor(jnp.asarray(delay_steps, dtype)) + 1).astype(dtype)[:, None]
     r = jnp.concatenate([v, live * (plant.C[:1] @ v)], axis=0)  # [v, c v, ..., c v, 0, ...]
     q2 = _deflation_basis(r)
     return q2.T @ _loop_matrix(plant, k, delay_steps, n_hist) @ q2
