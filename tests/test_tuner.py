@@ -206,6 +206,18 @@ def test_tuning_lowers_heldout_objective(tuned, controller):
         assert summary["stability"]["stable"] and summary["stability"]["decay_rate_per_s"] > cfg.objective.min_decay_rate
     assert set(summary["params"]) == ({"k", "tau_s"} if controller == "dfs" else {"k1", "k2", "k3"})
     assert (out_dir / "history.csv").read_text().count("\n") == summary["steps_run"] + 1
+    # Each history row is one point: row n holds the parameters after n updates (the initial
+    # ones in row 0) and the objectives there (the loss once sat beside the next parameters).
+    problem, rows, names = state["problem"], state["history"], list(summary["params"])
+    assert [h["step"] for h in rows] == list(range(summary["steps_run"]))
+    assert [rows[0][n] for n in names] == pytest.approx([summary["initial_params"][n] for n in names], rel=1e-12)
+    for row in (rows[0], next(h for h in rows if h.get("val_objective") is not None), rows[-1]):
+        raw = problem.tc.to_raw(problem.tc.from_named({n: row[n] for n in names}))
+        assert float(problem.evaluate(raw, problem.train)[0]) == pytest.approx(row["loss"], rel=1e-9)
+        if row.get("val_objective") is not None:
+            assert float(problem.evaluate(raw, problem.heldout)[0]) == pytest.approx(row["val_objective"], rel=1e-9)
+    best = next(h for h in rows if h["step"] == summary["best_step"])
+    assert [best[n] for n in names] == pytest.approx([summary["params"][n] for n in names], rel=1e-12)
 
 
 def test_bad_input_is_refused(tmp_path):

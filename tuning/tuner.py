@@ -341,20 +341,24 @@ def tune(
         bar = tqdm(total=config.steps, initial=min(state["step"], config.steps), desc=f"tune {config.controller}", unit="step")
     try:
         while state["step"] < config.steps and not state["stopped_early"]:
-            raw, opt_state, info = problem.train_step(state["raw"], state["opt_state"], problem.train)
+            # Each history row is one point: the parameters after `step` updates, the training
+            # objective and gradient norm there (from which the next update is taken), and
+            # every eval_every updates the held-out objective there.
+            at, n = state["raw"], state["step"]
+            raw, opt_state, info = problem.train_step(at, state["opt_state"], problem.train)
             loss, grad_norm = float(info["loss"]), float(info["grad_norm"])
             if not (math.isfinite(loss) and math.isfinite(grad_norm)):
                 what = f"the objective became {loss}" if not math.isfinite(loss) else f"the gradient norm became {grad_norm}"
                 kept = f"the last checkpoint in {out_dir} is kept" if os.path.exists(ckpt_path) else f"no checkpoint was written yet (every {config.checkpoint_every} steps)"
                 raise ValueError(f"{what} at step {state['step'] + 1}: lower learning_rate or clip_norm, or check the scenarios; {kept}")
-            state["raw"], state["opt_state"], state["step"] = raw, opt_state, state["step"] + 1
-            row = {"step": state["step"], **{k: float(v) for k, v in info.items()}}
-            row.update(problem.tc.named(problem.tc.to_physical(raw)))
-            if state["step"] % config.eval_every == 0 or state["step"] == config.steps:
-                val = float(problem.evaluate(raw, problem.heldout)[0])
+            state["raw"], state["opt_state"], state["step"] = raw, opt_state, n + 1
+            row = {"step": n, **{k: float(v) for k, v in info.items()}}
+            row.update(problem.tc.named(problem.tc.to_physical(at)))
+            if (n > 0 and n % config.eval_every == 0) or n + 1 == config.steps:
+                val = float(problem.evaluate(at, problem.heldout)[0])
                 row["val_objective"] = val
                 if val < state["best_val"]:
-                    state["best_val"], state["best_raw"], state["best_step"], state["bad_evals"] = val, raw, state["step"], 0
+                    state["best_val"], state["best_raw"], state["best_step"], state["bad_evals"] = val, at, n, 0
                 else:
                     state["bad_evals"] += 1
                     state["stopped_early"] = state["bad_evals"] >= config.patience
