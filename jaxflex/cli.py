@@ -300,7 +300,9 @@ def _montecarlo(args: argparse.Namespace) -> int:
         # The controller as it was tuned (a config file's own values take precedence).
         for key, value in tuned.options.items():
             values.setdefault(key, value)
-        values.setdefault("beam", tuned.beam)  # the arm it was tuned for
+        values.setdefault("beam", tuned.beam)  # the arm it was tuned for, and the model of it
+        values.setdefault("n_modes", tuned.n_modes)
+        values.setdefault("method", tuned.method)
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed}
     values.update({k: v for k, v in overrides.items() if v is not None})
     summary = run_montecarlo(MCConfig(**values), args.out, resume=args.resume, progress=not args.no_progress)

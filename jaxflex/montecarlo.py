@@ -243,6 +243,8 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
         "percentiles": list(config.percentiles),
         "scenarios": dataclasses.asdict(config.scenarios),
         "beam": config.beam._asdict(),
+        "n_modes": config.n_modes,
+        "method": config.method,
         "seed": config.seed,
     }
 

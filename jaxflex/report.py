@@ -26,7 +26,7 @@ from jaxflex.controllers import by_name
 from jaxflex.controllers.base import same_dt
 from jaxflex.controllers.fuzzy import fuzzy_params, fuzzy_surface
 from jaxflex.controllers.registry import PARAMETERS
-from jaxflex.plant import discretize, make_plant
+from jaxflex.plant import METHODS, discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import paper_scenario
 
@@ -216,6 +216,7 @@ class Tuned(NamedTuple):
         ``capacity``, ``delay``, ``pade_order`` and ``fuzzy_temperature``).
       beam: the arm it was tuned for (the run's ``[beam]``; the paper's when absent).
       dt: the run's sample time (s; its ``[scenarios]`` dt, the paper's 1 ms when absent).
+      n_modes, method: the plant model it was tuned on (default 2 modes, ``"rk4"``).
     """
 
     name: str
@@ -223,6 +224,8 @@ class Tuned(NamedTuple):
     options: dict[str, Any]
     beam: beam.BeamParams
     dt: float
+    n_modes: int = 2
+    method: str = "rk4"
 
     def build(self, dt: float) -> tuple[Any, Any]:
         """The controller as it was tuned, for a loop sampled every ``dt`` seconds, and its
@@ -274,10 +277,14 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
     }
     table = config.get("scenarios", {})
     dt = checks.number(f"--params: {path}'s scenarios.dt", table.get("dt", DT) if isinstance(table, dict) else table, strict=True)
+    n_modes = checks.integer(f"--params: {path}'s n_modes", config.get("n_modes", 2))
+    method = config.get("method", "rk4")
+    if method not in METHODS:
+        raise ValueError(f"--params: {path}'s method must be one of {METHODS}; got {method!r}")
     arm = config.get("beam", {})
     try:
         tuned_beam = beam.params_from_mapping({k: v for k, v in arm.items() if v is not None} if isinstance(arm, dict) else arm)
-        tuned = Tuned(name, values, options, tuned_beam, dt)
+        tuned = Tuned(name, values, options, tuned_beam, dt, n_modes, method)
         tuned.build(dt)
     except ValueError as err:
         raise ValueError(f"--params: {path}: {err}") from None

@@ -177,7 +177,8 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     tuned = tmp_path / "tuned.json"
     arm_table = {**BeamParams(length_m=0.6, payload_mass_kg=0.05)._asdict()}  # as tuned.json holds it, None included
     named = {"k": 45.0, "tau_s": 0.006, "k1": 1.1, "k2": 0.25, "k3": 0.9}
-    tuned.write_text(json.dumps({"controller": "dfs+fuzzy", "params": named, "config": {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03, "beam": arm_table}}))
+    tuned.write_text(json.dumps({"controller": "dfs+fuzzy", "params": named, "config": {
+        "capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03, "beam": arm_table, "n_modes": 3, "method": "zoh"}}))
     config = tmp_path / "mc.toml"
     config.write_text("band_scenarios = 2\n[scenarios]\nhorizon_s = 0.05\n")
     out = tmp_path / "o"
@@ -189,18 +190,19 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     assert summary["controller"] == "dfs+fuzzy" and summary["params"] == named
     assert summary["controller_options"] == {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}
     assert summary["beam"] == arm_table and summary["chunk"] == 3
+    assert (summary["n_modes"], summary["method"]) == (3, "zoh")  # the model it was tuned on
     with np.load(out / "chunks" / "chunk_000000.npz") as data:
         assert data["diverged"].shape == (3,)
     # the statistics are those of the tuned controller, run directly with its options
     direct = MCConfig(
         controller="dfs+fuzzy", params=named, n_scenarios=3, chunk=3, band_scenarios=2, scenarios=ScenarioSpec(horizon_s=0.05),
-        capacity=16, delay="pade", pade_order=5, fuzzy_temperature=0.03, beam=BeamParams(length_m=0.6, payload_mass_kg=0.05),
+        capacity=16, delay="pade", pade_order=5, fuzzy_temperature=0.03, beam=BeamParams(length_m=0.6, payload_mass_kg=0.05), n_modes=3, method="zoh",
     )
     assert run_montecarlo(direct, tmp_path / "direct", progress=False, figures=False)["metrics"] == summary["metrics"]
     # and the runner simulates that arm, not the paper's
-    arm_plant = discretize(make_plant(BeamParams(length_m=0.6, payload_mass_kg=0.05)), 1e-3, direct.method)
+    arm_plant = discretize(make_plant(BeamParams(length_m=0.6, payload_mass_kg=0.05), 3), 1e-3, "zoh")
     np.testing.assert_allclose(montecarlo._Runner(direct).nominal.Ad, arm_plant.Ad, rtol=1e-12)
-    assert not np.allclose(arm_plant.Ad, discretize(make_plant(), 1e-3, direct.method).Ad)
+    assert not np.allclose(arm_plant.Ad, discretize(make_plant(BeamParams(), 3), 1e-3, "zoh").Ad)
 
 
 def test_params_tuned_at_another_dt_run_at_that_dt(tmp_path, capsys):
