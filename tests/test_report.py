@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from jaxflex import beam, cli, fileio
-from jaxflex.report import FIGURES
+from jaxflex.report import FIGURES, reproduce
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -233,3 +233,12 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     assert re.search(rf"Command: `jaxflex reproduce --modes 2( --x64)? --params {re.escape(str(tuned))}`", report)  # the tests run in float64
     assert "These gains were tuned for another arm (length_m = 0.6); they are shown here on the paper's arm." in report
     assert (out / "fig_tuned_response.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_one_mode_report_says_which_modes_it_compared(tmp_path):
+    """With one mode only mode 1 is compared; the report once said 'at both modes'."""
+    results = reproduce(tmp_path, n_modes=1)
+    assert len(results["vibration_reduction_db"]["dfs"]) == 1
+    text = (tmp_path / "report.md").read_text()
+    assert "at both modes" not in text
+    assert "than the fuzzy controller at mode 1 (the only mode of this 1-mode model; the paper also compares mode 2)" in text
