@@ -52,8 +52,12 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
     return fig
 
 
-def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Sequence[float], ylabel: str, title: str, fmax: float = 150.0) -> plt.Figure:
-    """Power spectral densities on a log scale with the model's modal frequencies marked."""
+def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Sequence[float], ylabel: str, title: str, fmax: float | None = None) -> plt.Figure:
+    """Power spectral densities on a log scale with the model's modal frequencies marked, up to
+    ``fmax`` (Hz; default: 150 Hz or 1.5 times the highest mode, whichever is higher, within
+    the estimate's frequencies)."""
+    if fmax is None:
+        fmax = min(float(np.max(freqs)), max(150.0, 1.5 * max(mode_freqs_hz, default=0.0)))
     fig, ax = plt.subplots(figsize=(7.5, 3.6))
     keep = freqs <= fmax
     for run, psd in runs.items():

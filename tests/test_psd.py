@@ -228,3 +228,21 @@ def test_validation_errors():
             welch(x, bad_fs, nperseg=32)
     with pytest.raises(ValueError, match=r"\[T\] or \[T, n\]"):
         welch(jnp.ones((10, 2, 2)), FS, nperseg=4)
+
+
+def test_psd_figure_shows_every_mode_below_nyquist():
+    """The PSD figure once stopped at 150 Hz whatever the arm: a stiff arm's modes at 216 and
+    695 Hz were cut off. The axis now reaches 1.5 times the highest mode, within the estimate."""
+    import matplotlib.pyplot as plt
+
+    from jaxflex import plotting
+
+    freqs = np.linspace(0, 500, 513)
+    psd = np.ones_like(freqs)
+    for modes, right in (((13.3, 36.5), 150.0), ((216.0, 695.0), 500.0), ((216.0,), 324.0)):
+        fig = plotting.psds(freqs, {"tuned": psd}, modes, "y", "title")
+        line = fig.axes[0].get_lines()[0]
+        assert np.max(line.get_xdata()) == freqs[freqs <= right].max(), modes
+        marked = [ln.get_xdata()[0] for ln in fig.axes[0].get_lines()[1:]]
+        assert marked == [f for f in modes if f <= right]
+        plt.close(fig)
