@@ -323,8 +323,10 @@ def _stability(args: argparse.Namespace) -> int:
     arm = params_from_mapping(table)
     result = run(args.out, k=args.k, tau_s=args.tau, n_modes=args.modes, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     first = result["first_destabilising_delay_s"]
+    rk4 = result["spectral_radius_rk4"]
     print(f"k = {args.k:g}, tau = {args.tau:g} s, {args.modes} modes: sampled-loop spectral radius {result['spectral_radius']:.6f} "
-          f"({'stable' if result['stable_sampled'] else 'unstable'}), first destabilising delay {'none' if first is None else f'{first:g} s'}")
+          f"({'stable' if result['stable_sampled'] else 'unstable'}; the RK4-sampled loop of tune and montecarlo: {rk4:.6f}, {'stable' if rk4 < 1 else 'unstable'}), "
+          f"first destabilising delay {'none' if first is None else f'{first:g} s'}")
     print(f"wrote {os.path.join(args.out, 'stability.json')} and {os.path.join(args.out, 'stability_chart.png')}")
     return 0
 

@@ -32,7 +32,7 @@ from jaxflex import beam, checks, fileio
 from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, param_values
-from jaxflex.plant import discretize, make_plant
+from jaxflex.plant import check_rk4_step, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, perturbed_params, sample_scenarios, scenario_plant
 
@@ -113,6 +113,8 @@ class MCConfig:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
         object.__setattr__(self, "beam", beam.plain_params(self.beam))
+        if self.method == "rk4":
+            check_rk4_step(make_plant(self.beam, self.n_modes), self.scenarios.dt)
 
     @property
     def run_chunk(self) -> int:

@@ -127,7 +127,10 @@ def run(
         struct_residual = float(np.max(np.abs(mat @ r_vec - r_vec))) if v.shape[1] else None
 
         say(f"stability chart ({delay_grid.size} delays x {n_k} gains)")
-        chart = st.stability_chart(plant, k_grid, delay_grid, dt, method, n_cheb)
+        try:
+            chart = st.stability_chart(plant, k_grid, delay_grid, dt, method, n_cheb)
+        except ValueError as err:
+            raise ValueError(f"the chart over k_range [{k_lo:g}, {k_hi:g}] (default [0, 3 k]): {err}") from None
 
     fig = plotting.stability_chart(
         chart.k, chart.tau_s, chart.spectral_radius, chart.rightmost_real, chart.first_destabilising_delay_s, point=(k, tau),

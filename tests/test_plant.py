@@ -130,3 +130,28 @@ def test_float32_is_preserved():
     params = BeamParams(*(jnp.float32(v) if v is not None else None for v in BeamParams()))
     d = discretize(make_plant(params, 2), 1e-3, "zoh")
     assert d.Ad.dtype == jnp.float32 and d.Bd.dtype == jnp.float32
+
+
+def test_rk4_step_that_amplifies_a_mode_is_refused_by_the_configs():
+    """A stiff arm (modes at 216 and 695 Hz) at 1 ms: one RK4 step multiplies the 695 Hz mode
+    by |R(i omega dt)| > 1 (omega dt = 4.37 > 2.83), so tune and montecarlo ran NaN and blamed
+    the learning rate. The configs now refuse it by name; ZOH, or a short enough dt, is fine."""
+    from jaxflex.beam import natural_frequencies_hz
+    from jaxflex.montecarlo import MCConfig
+    from jaxflex.plant import check_rk4_step
+    from jaxflex.scenarios import ScenarioSpec
+    from tuning.tuner import TuneConfig
+
+    stiff = BeamParams(length_m=0.25, thickness_m=8e-3)
+    plant = make_plant(stiff, 2)
+    omega = 2 * np.pi * np.asarray(natural_frequencies_hz(stiff, 2)).max()
+    rk4 = np.asarray(discretize(plant, 1e-3, "rk4").Ad)
+    assert np.abs(np.linalg.eigvals(rk4)).max() > 1  # what the check stands for
+    message = r"method = 'rk4' with dt = 0.001 s is unstable for this arm: its mode at 69\d.\d Hz has omega dt = 4.3\d"
+    for make in (MCConfig, TuneConfig):
+        with pytest.raises(ValueError, match=message):
+            make(beam=stiff)
+        make(beam=stiff, method="zoh")
+        make(beam=stiff, scenarios=ScenarioSpec(dt=2.7 / omega))
+    check_rk4_step(make_plant(BeamParams(), 4), 1e-3)  # the paper's arm, even with 4 modes
+    assert np.abs(np.linalg.eigvals(np.asarray(discretize(plant, 2.7 / omega, "rk4").Ad))).max() <= 1

@@ -362,7 +362,7 @@ def test_default_chart_range_fits_the_limit_at_a_fine_sample_time(tmp_path):
     np.testing.assert_allclose(result["chart"]["tau_range_s"][1], 160 * 1e-4, rtol=1e-12)
 
 
-def test_report_analyses_the_given_arm(tmp_path, monkeypatch):
+def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     """``beam_params`` is the arm analysed (its sampled-loop radius, recorded in the JSON), and
     ``jaxflex stability --config`` reads only the file's [beam] table."""
     from jaxflex import cli
@@ -380,12 +380,29 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch):
 
     def fake_run(out, **kwargs):
         seen.update(kwargs)
-        return {"spectral_radius": 0.5, "stable_sampled": True, "first_destabilising_delay_s": None}
+        return {"spectral_radius": 0.5, "spectral_radius_rk4": 11.44, "stable_sampled": True, "first_destabilising_delay_s": None}
 
     monkeypatch.setattr(stability_report, "run", fake_run)
     config = tmp_path / "tune.toml"
     config.write_text('steps = 5\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
     assert seen["beam_params"] == arm
+    # the loop tune and montecarlo simulate by default (RK4) is printed beside the ZOH one
+    assert "spectral radius 0.500000 (stable; the RK4-sampled loop of tune and montecarlo: 11.440000, unstable)" in capsys.readouterr().out
     config.write_text("[beam]\nlength = 0.6\n")
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
+
+
+def test_huge_gain_is_refused_by_name_not_by_memory():
+    """k = 1e30 once asked NumPy for 2.3 PiB of critical delays (and k = 1e9 ran for 10 minutes,
+    one Python call per delay). The delays of a crossing are now computed in one vector call,
+    and a crossing with more than a million of them is refused naming k and the count."""
+    plant = make_plant(n_modes=2)
+    with pytest.raises(ValueError, match=r"k = 1e\+30: the loop crosses the imaginary axis at .* Hz, every .* s of delay, which is .* critical delays up to 1 s \(at most 1e\+06"):
+        st.first_destabilising_delay(1e30, plant=plant)
+    # the vector call gives the delays and directions of the per-delay loop it replaced
+    crit = st.critical_delays(plant, 500.0, 0.5)
+    A, b, c = st.loop_vectors(plant)
+    for crossing in crit.crossings:
+        looped = [np.real(st._dsdtau(A, b, c, 500.0, t, 1j * crossing.omega)[0]) for t in crossing.tau_s]
+        np.testing.assert_allclose(crossing.re_dsdtau, looped, rtol=1e-12)

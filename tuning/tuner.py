@@ -29,7 +29,7 @@ from jaxflex.analysis import stability
 from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.registry import PARAMETERS, param_values
-from jaxflex.plant import discretize, make_plant
+from jaxflex.plant import check_rk4_step, discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, sample_scenarios, scenario_plant
 from tuning import objectives
@@ -118,6 +118,8 @@ class TuneConfig:
         if unknown:
             raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed)}")
         param_values(self.initial, "initial")
+        if self.method == "rk4":
+            check_rk4_step(make_plant(self.beam, self.n_modes), self.scenarios.dt)
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)

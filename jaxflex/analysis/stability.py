@@ -80,6 +80,7 @@ _ROOT_IMAG_RTOL = 1e-6  # a root v of F is real when |Im v| <= this x |v| (befor
 _SCAN_POINTS_PER_DECADE = 2000  # backup frequency scan: resolves resonances with damping ratio >~ 1e-3
 _DEDUP_RTOL = 1e-7  # two polished crossing frequencies closer than this (relative) are the same one
 _WHOLE_SAMPLE_RTOL = 1e-6  # tau / dt within this of an integer is a whole number of samples
+_MAX_CRITICAL_DELAYS = 1_000_000  # per crossing frequency; beyond, |k| or tau_max is far outside the arm's range
 DEFAULT_N_CHEB = 32  # Chebyshev intervals of the generator: on the 2-mode arm the rightmost root is converged to ~1e-11 rad/s for tau <= 40 ms, k <= 120
 
 
@@ -402,9 +403,15 @@ def critical_delays(plant: LinearPlant, k: ArrayLike, tau_max_s: ArrayLike = 0.0
     for w in crossing_frequencies(plant, k):
         g, _ = _transfer(A, b, c, 1j * w)
         beta = float(np.mod(-np.angle(1.0 + 1.0 / (k * g[0])), 2 * np.pi))
-        taus = beta / w + 2 * np.pi / w * np.arange(int(np.floor((tau_max * w - beta) / (2 * np.pi))) + 1)
+        count = int(np.floor((tau_max * w - beta) / (2 * np.pi))) + 1
+        if count > _MAX_CRITICAL_DELAYS:
+            raise ValueError(
+                f"k = {k:g}: the loop crosses the imaginary axis at {w / (2 * np.pi):.4g} Hz, every {2 * np.pi / w:.3g} s of delay, "
+                f"which is {count:.3g} critical delays up to {tau_max:g} s (at most {_MAX_CRITICAL_DELAYS:g} are listed): use a smaller |k| or tau_max_s"
+            )
+        taus = beta / w + 2 * np.pi / w * np.arange(count)
         taus = taus[(taus > 0) & (taus <= tau_max)]
-        re = np.asarray([np.real(_dsdtau(A, b, c, k, t, 1j * w)[0]) for t in taus])
+        re = np.real(_dsdtau(A, b, c, k, taus, 1j * w)).reshape(-1)
         dw = 1e-6 * w
         fw = lambda x: np.abs(np.polyval(polys.P, 1j * x)) ** 2 - np.abs(np.polyval(polys.Q, 1j * x)) ** 2  # noqa: E731
         df = (fw(w + dw) - fw(w - dw)) / (2 * dw)
