@@ -129,6 +129,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, OSError) as err:
         print(f"jaxflex {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except Exception as err:
+        if "RESOURCE_EXHAUSTED" not in str(err):
+            raise
+        first = str(err).strip().splitlines()[0]
+        batch = {"tune": "--scenarios, --heldout", "montecarlo": "--chunk, --scenarios"}.get(args.command)
+        hint = f"; lower the batch ({batch}) or the horizon (horizon_s)" if batch else ""
+        print(f"jaxflex {args.command}: error: out of memory ({first}){hint}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"jaxflex {args.command}: interrupted{_RESUME_HINT.get(args.command, '')}", file=sys.stderr)
         return 130

@@ -271,7 +271,6 @@ def run_montecarlo(
         raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no montecarlo.json); leave out --resume to start one")
     os.makedirs(os.path.join(out_dir, "chunks"), exist_ok=True)
     runner = _Runner(config)
-    fileio.write_json(meta_path, meta)
 
     n_chunks = int(math.ceil(config.n_scenarios / runner.chunk))
     bar = None
@@ -288,6 +287,10 @@ def run_montecarlo(
                     rows = {k: data[k] for k in data.files}
             else:
                 rows = runner.run_chunk(index)
+                if not os.path.exists(meta_path):
+                    # Written with the first chunk, so that a run failing before it (out of
+                    # memory, a bad option found late) leaves no run that blocks the next one.
+                    fileio.write_json(meta_path, meta)
 
                 def write(tmp: str, rows=rows) -> None:
                     with open(tmp, "wb") as f:

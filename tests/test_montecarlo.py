@@ -249,3 +249,23 @@ def test_numpy_scalars_are_accepted_and_stored_as_plain_numbers():
     plain_cfg = MCConfig(n_scenarios=40, chunk=8, capacity=64, seed=7, fuzzy_temperature=0.5)
     assert type(numpy_cfg.chunk) is int and type(numpy_cfg.seed) is int and type(numpy_cfg.fuzzy_temperature) is float
     assert numpy_cfg.fingerprint() == plain_cfg.fingerprint()
+
+
+def test_a_run_out_of_memory_is_named_and_leaves_no_run_behind(tmp_path, capsys, monkeypatch):
+    """An out-of-memory chunk (XLA's RESOURCE_EXHAUSTED, e.g. horizon_s = 1e9) was a traceback,
+    and the montecarlo.json written before it blocked the next run in that folder."""
+    from jaxflex import cli
+
+    def exhausted(self, index):
+        raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 4000000000000 bytes.")
+
+    monkeypatch.setattr(montecarlo._Runner, "run_chunk", exhausted)
+    config = MCConfig(n_scenarios=2, scenarios=ScenarioSpec(horizon_s=0.05))
+    assert cli.main(["montecarlo", "--scenarios", "2", "--out", str(tmp_path / "new"), "--no-progress"]) == 2
+    assert "error: out of memory (RESOURCE_EXHAUSTED: Out of memory allocating 4000000000000 bytes.); lower the batch" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    with pytest.raises(RuntimeError):
+        run_montecarlo(config, tmp_path / "kept", progress=False, figures=False)
+    assert not (tmp_path / "kept" / "montecarlo.json").exists()
+    monkeypatch.undo()
+    assert run_montecarlo(config, tmp_path / "kept", progress=False, figures=False)["n_scenarios"] == 2  # no --resume needed
