@@ -180,6 +180,8 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
     tree_allclose(resumed["raw"], full["raw"], rtol=0)
     tree_allclose(resumed["best_raw"], full["best_raw"], rtol=0)
     assert [h["loss"] for h in resumed["history"]] == [h["loss"] for h in full["history"]]
+    with pytest.raises(ValueError, match=r"has taken 30 steps already; steps = 20 cannot undo them \(pass --steps 30 or more\)"):
+        tune(dataclasses.replace(cfg, steps=20), tmp_path / "cut", resume=True, progress=False)
     with pytest.raises(ValueError, match=r"another configuration \(changed: seed;"):
         tune(dataclasses.replace(cfg, seed=1), tmp_path / "cut", resume=True, progress=False)
     # another controller has other arrays: the configuration is compared before they are read,

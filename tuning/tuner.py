@@ -312,6 +312,8 @@ def tune(
             changed = sorted(k for k in now if k in before and before[k] != now[k])
             what = f"changed: {', '.join(changed)}" if changed else "the configuration changed"
             raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration ({what}; fingerprint {meta['fingerprint']} != {fingerprint})")
+        if config.steps < meta["step"]:
+            raise ValueError(f"--resume: the run in {out_dir} has taken {meta['step']} steps already; steps = {config.steps} cannot undo them (pass --steps {meta['step']} or more)")
     os.makedirs(out_dir, exist_ok=True)
     if progress:
         print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios, compiling", file=sys.stderr, flush=True)
