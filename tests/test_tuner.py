@@ -229,6 +229,11 @@ def test_bad_input_is_refused(tmp_path):
     coarse = dict(SHARED, scenarios=ScenarioSpec(horizon_s=0.4, dt=0.01))
     with pytest.raises(ValueError, match=r"the paper's gains, which set the objective's scales, cannot be run with dt = 0.01 s"):
         Problem(TuneConfig(controller="dfs", initial={"tau_s": 0.05}, **coarse))
+    # an arm on which the paper's gains diverge (hub inertia / 33: sampled radius 1.13) over 8 s:
+    # said at the start, not as a NaN objective blamed on the learning rate
+    light_hub = jf.BeamParams(hub_inertia_kg_m2=jf.BeamParams().hub_inertia_kg_m2 * 0.03)
+    with pytest.raises(ValueError, match=r"the paper's gains, which set the objective's scales, diverge on the training scenarios: check the arm"):
+        Problem(TuneConfig(controller="dfs", n_scenarios=4, n_heldout=2, method="zoh", beam=light_hub, scenarios=ScenarioSpec(horizon_s=8.0)))
     with pytest.raises(ValueError, match="controller must be one of"):
         TuneConfig(controller="lqr")
     with pytest.raises(ValueError, match="delay must be one of"):

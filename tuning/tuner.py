@@ -180,6 +180,11 @@ class Problem:
         inner = optax.adam(config.learning_rate) if optimizer is None else optimizer
         self.optimizer = optax.chain(optax.clip_by_global_norm(config.clip_norm), inner)
         self.scales = jax.jit(self._terms)(self.paper_raw, self.train)
+        if not all(np.all(np.isfinite(np.asarray(t))) for t in self.scales):
+            raise ValueError(
+                "the paper's gains, which set the objective's scales, diverge on the training scenarios: "
+                "check the arm ([beam]), dt and method, and the scenarios' disturbances"
+            )
         self.scales = objectives.reference_scales(self.scales)
         self.evaluate = jax.jit(self._objective)
         self.train_step = self._make_train_step()
