@@ -129,7 +129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, OSError) as err:
         print(f"jaxflex {args.command}: error: {err}", file=sys.stderr)
         return 2
-    except Exception as err:
+    except RuntimeError as err:  # jax.errors.JaxRuntimeError, a RuntimeError
         if "RESOURCE_EXHAUSTED" not in str(err):
             raise
         first = str(err).strip().splitlines()[0]

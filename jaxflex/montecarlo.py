@@ -32,7 +32,7 @@ from jaxflex import beam, checks, fileio
 from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, param_values
-from jaxflex.plant import check_rk4_step, discretize, make_plant
+from jaxflex.plant import METHODS, check_rk4_step, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, perturbed_params, sample_scenarios, scenario_plant
 
@@ -107,7 +107,7 @@ class MCConfig:
             or any(isinstance(p, bool) or not (isinstance(p, (int, float)) and 0 <= p <= 100) for p in self.percentiles)
         ):
             raise ValueError(f"percentiles must be numbers in [0, 100]; got {self.percentiles!r}")
-        if self.method not in ("rk4", "zoh"):
+        if self.method not in METHODS:
             raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")

@@ -29,7 +29,7 @@ from jaxflex.analysis import stability
 from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.registry import PARAMETERS, param_values
-from jaxflex.plant import check_rk4_step, discretize, make_plant
+from jaxflex.plant import METHODS, check_rk4_step, discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, sample_scenarios, scenario_plant
 from tuning import objectives
@@ -104,7 +104,7 @@ class TuneConfig:
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
-        if self.method not in ("rk4", "zoh"):
+        if self.method not in METHODS:
             raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
         if not isinstance(self.scenarios, ScenarioSpec):
             raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")

@@ -591,8 +591,9 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
       k: gain (N*m/rad); may be traced.
       delay_steps: d >= 1 samples. An integer when ``n_hist`` is None (then ``n_hist = d``);
         with ``n_hist`` given it may be traced (vmap over delays): history slots beyond
-        floor(d) + 1 are neither shifted nor read, so they add only semisimple zero eigenvalues (no defective
-        block whose computed eigenvalues would scatter by eps^(1/size)).
+        floor(d) + 1 are neither shifted nor read, so they add only semisimple zero
+        eigenvalues (no defective block whose computed eigenvalues would scatter by
+        eps^(1/size)).
       n_hist: static history length >= d.
 
     Returns:

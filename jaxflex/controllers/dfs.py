@@ -10,8 +10,9 @@ chosen by ``approximation``):
 
 * ``"buffer"`` (default): a ring buffer (:mod:`jaxflex.delay`) of static capacity. With
   ``interpolation="nearest"`` tau must be a whole number of samples (checked on concrete
-  parameters; a traced tau, under ``jit`` or ``vmap``, is read at the nearest sample); ``"linear"`` and ``"cubic"`` read between samples, so tau is a
-  differentiable parameter, up to ``capacity * dt``.
+  parameters; a traced tau, under ``jit`` or ``vmap``, is read at the nearest sample);
+  ``"linear"`` and ``"cubic"`` read between samples, so tau is a differentiable parameter,
+  up to ``capacity * dt``.
 * ``"pade"``: the ``[N/N]`` Pade approximant of ``e^{-s tau}`` (:mod:`jaxflex.pade`), sampled
   exactly at ``dt``, filters the measured angle. Its N states replace the buffer; tau is
   differentiable and has no upper bound. The filter is sampled once per rollout, in
