@@ -140,8 +140,10 @@ def check_rk4_step(plant: LinearPlant, dt: float) -> None:
       dt: sample time (s).
 
     Raises:
-      ValueError: naming the fastest such mode, its ``omega dt`` and the ZOH alternative.
+      ValueError: naming the fastest such mode, its ``omega dt`` and the ZOH alternative
+        (or naming ``dt`` when it is not a finite number > 0).
     """
+    check_dt(dt)
     lam = np.linalg.eigvals(np.asarray(plant.A, dtype=float))
     z = lam * float(dt)
     gain = np.abs(1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24)

@@ -154,4 +154,7 @@ def test_rk4_step_that_amplifies_a_mode_is_refused_by_the_configs():
         make(beam=stiff, method="zoh")
         make(beam=stiff, scenarios=ScenarioSpec(dt=2.7 / omega))
     check_rk4_step(make_plant(BeamParams(), 4), 1e-3)  # the paper's arm, even with 4 modes
+    for dt in (-1e-3, 0.0, float("nan")):
+        with pytest.raises(ValueError, match="dt must be a finite scalar > 0"):
+            check_rk4_step(plant, dt)
     assert np.abs(np.linalg.eigvals(np.asarray(discretize(plant, 2.7 / omega, "rk4").Ad))).max() <= 1
