@@ -17,7 +17,9 @@ Sections (``--section``, default all):
 * ``capacity``: DFS and DFS+fuzzy forward with delay buffers of 64 (``dfs()``'s default),
   16 and 8 samples, for the same 5-sample delay.
 * ``memory``: compiled memory of metrics-only and trajectory rollouts at two horizons.
-* ``flops``: floating-point operations per closed-loop step, counted on the rollout's jaxpr.
+* ``flops``: floating-point operations per closed-loop step, counted on the rollout's jaxpr;
+  and per step of ``value_and_grad`` against the forward pass, on the jaxprs and on the
+  programs XLA compiles (``grad_ops_per_step``).
 * ``baselines``: NumPy (batch 4096), python-control and scikit-fuzzy (one scenario, short
   horizon), each checked against jaxflex before it is timed, with jaxflex timed beside them.
 * ``ab``: the rollout and fuzzy modules of git revision ``--ab-rev`` (before the layout
@@ -191,8 +193,9 @@ def count_flops(jaxpr: Any) -> tuple[int, int]:
     return arith, trans
 
 
-def flops_per_step(controller: str, defuzz: str, integrator: str = "zoh") -> tuple[int, int]:
-    """Per-step FLOPs of the metrics rollout: the scan body of one unbatched scenario."""
+def _rollout_jaxprs(controller: str, defuzz: str, integrator: str = "zoh") -> tuple[Any, Any]:
+    """The closed jaxprs of one unbatched scenario's tip ISE and of its ``value_and_grad``
+    with respect to every controller parameter (8 steps: the scan bodies do not depend on it)."""
     import jax
     import jax.numpy as jnp
 
@@ -203,15 +206,75 @@ def flops_per_step(controller: str, defuzz: str, integrator: str = "zoh") -> tup
     plant = bench_plant(integrator, jnp.float32)
     ctrl, params = controller_and_params(controller, defuzz, jnp.float32)
     x0, force, noise = bench_inputs(1, 8, jnp.float32)
-    closed = jax.make_jaxpr(lambda p, x: rollout(plant, ctrl, p, Scenario(x, force, noise), output="metrics"))(params, x0[0])
-    scans = [e for e in closed.jaxpr.eqns if e.primitive.name == "scan"]
-    return count_flops(scans[0].params["jaxpr"].jaxpr)
+    ise = lambda p, x: rollout(plant, ctrl, p, Scenario(x, force, noise), output="metrics").tip_ise  # noqa: E731
+    return jax.make_jaxpr(ise)(params, x0[0]), jax.make_jaxpr(jax.value_and_grad(ise))(params, x0[0])
+
+
+def _scans(jaxpr: Any) -> list[Any]:
+    """The scan equations of a jaxpr, outermost first, recursing into sub-jaxprs."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "scan":
+            found.append(eqn)
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (tuple, list)) else (value,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    found += _scans(inner)
+    return found
+
+
+def flops_per_step(controller: str, defuzz: str, integrator: str = "zoh") -> tuple[int, int]:
+    """Per-step FLOPs of the metrics rollout: the scan body of one unbatched scenario."""
+    forward, _ = _rollout_jaxprs(controller, defuzz, integrator)
+    return count_flops(_scans(forward.jaxpr)[0].params["jaxpr"].jaxpr)
+
+
+def grad_ops_per_step(controller: str, defuzz: str, batch: int = 4096) -> dict[str, Any]:
+    """Operations per step of ``value_and_grad`` against the forward pass, counted twice.
+
+    * On the jaxprs JAX builds (``count_flops``, arithmetic and transcendental together): the
+      forward scan body, and the two scans of ``value_and_grad``: its forward pass, which also
+      writes the residuals, and its reverse pass.
+    * On the programs XLA compiles for the benchmark (``jaxflex.bench.make_benchmark``, one
+      device, ``batch`` scenarios): ``cost_analysis()["flops"]`` per scenario. XLA counts a
+      loop body once, and after fusion, so a value copied into several kernels counts once
+      in each.
+
+    The ratio forward / value_and_grad of either count is the throughput ratio that the same
+    rate per operation would give."""
+    import jax
+
+    from jaxflex.bench import BenchConfig, make_benchmark
+
+    forward, grad = _rollout_jaxprs(controller, defuzz)
+    jaxpr_forward = sum(count_flops(_scans(forward.jaxpr)[0].params["jaxpr"].jaxpr))
+    jaxpr_grad = [sum(count_flops(e.params["jaxpr"].jaxpr)) for e in _scans(grad.jaxpr)]
+    xla = {}
+    for mode in ("forward", "grad"):
+        fn, args = make_benchmark(BenchConfig(controller=controller, defuzz=defuzz, mode=mode, batch=batch, horizon=100))
+        cost = fn.lower(*args).compile().cost_analysis()
+        cost = cost[0] if isinstance(cost, list) else cost
+        xla[mode] = float(cost["flops"]) / batch
+    return {
+        "batch": batch,
+        "n_params": sum(int(leaf.size) for leaf in jax.tree.leaves(args[0])),
+        "jaxpr_forward": jaxpr_forward,
+        "jaxpr_grad_scans": jaxpr_grad,
+        "jaxpr_ratio": jaxpr_forward / sum(jaxpr_grad),
+        "xla_forward": xla["forward"],
+        "xla_grad": xla["grad"],
+        "xla_ratio": xla["forward"] / xla["grad"],
+    }
 
 
 def section_flops(emit: Callable) -> None:
     for controller, defuzz in (("open_loop", "centroid"), ("dfs", "centroid"), ("fuzzy", "centroid"), ("fuzzy", "singleton"), ("fuzzy", "smooth"), ("dfs+fuzzy", "centroid"), ("dfs+fuzzy", "singleton"), ("dfs+fuzzy", "smooth")):
         arith, trans = flops_per_step(controller, defuzz)
-        emit({"kind": "flops", "controller": controller, "defuzz": None if "fuzzy" not in controller else defuzz, "flops_per_step": arith, "transcendental_per_step": trans})
+        row = {"controller": controller, "defuzz": None if "fuzzy" not in controller else defuzz}
+        emit({"kind": "flops", **row, "flops_per_step": arith, "transcendental_per_step": trans})
+        if controller != "open_loop":
+            emit({"kind": "grad_ops", **row, **grad_ops_per_step(controller, defuzz)})
 
 
 # -- memory ------------------------------------------------------------------------------------
@@ -524,6 +587,19 @@ def render_tables(paths: list[str]) -> str:
             for r in rows:
                 if r["kind"] == "flops":
                     out.append(f"| {r['controller']} | {r['defuzz'] or '-'} | {r['flops_per_step']} | {r['transcendental_per_step']} |")
+            out.append("")
+        if "grad_ops" in kinds:
+            out.append(
+                "| controller | defuzz | params | jaxpr: forward | jaxpr: value_and_grad (forward + reverse) | ratio "
+                "| XLA per scenario: forward | XLA: value_and_grad | ratio |\n|---|---|---:|---:|---:|---:|---:|---:|---:|"
+            )
+            for r in rows:
+                if r["kind"] == "grad_ops":
+                    scans = " + ".join(str(n) for n in r["jaxpr_grad_scans"])
+                    out.append(
+                        f"| {r['controller']} | {r['defuzz'] or '-'} | {r['n_params']} | {r['jaxpr_forward']} | {scans} | {r['jaxpr_ratio']:.1%} "
+                        f"| {r['xla_forward']:.0f} | {r['xla_grad']:.0f} | {r['xla_ratio']:.1%} |"
+                    )
             out.append("")
         if "memory" in kinds:
             out.append("| output | batch | horizon | temp MiB | argument MiB | output MiB |\n|---|---:|---:|---:|---:|---:|")

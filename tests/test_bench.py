@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from benchmarks import baselines as bl
-from benchmarks.bench_rollout import RTOL_CONTROL, RTOL_NUMPY, RTOL_SKFUZZY, check_baselines, count_flops
+from benchmarks.bench_rollout import RTOL_CONTROL, RTOL_NUMPY, RTOL_SKFUZZY, check_baselines, count_flops, flops_per_step, grad_ops_per_step
 from jaxflex.bench import BenchConfig, controller_and_params, format_table, make_benchmark, run_bench
 from tests.helpers import tree_allclose
 
@@ -144,6 +144,17 @@ def test_flop_count_of_a_known_jaxpr():
     a = jnp.ones((3, 4))
     closed = jax.make_jaxpr(lambda a, x: jnp.maximum(a @ x + 1.0, 0.0))(a, jnp.ones(4))
     assert count_flops(closed.jaxpr) == (2 * 3 * 4 + 3 + 3, 0)
+
+
+def test_gradient_operation_counts_find_the_forward_and_reverse_scans():
+    """value_and_grad of the DFS loop holds one forward scan, which does the forward step's
+    work and writes residuals, and one reverse scan; XLA's counts are per scenario."""
+    ops = grad_ops_per_step("dfs", "centroid", batch=8)
+    assert ops["jaxpr_forward"] == sum(flops_per_step("dfs", "centroid"))
+    forward_pass, reverse_pass = ops["jaxpr_grad_scans"]
+    assert forward_pass >= ops["jaxpr_forward"] and reverse_pass > 0
+    assert ops["jaxpr_ratio"] == pytest.approx(ops["jaxpr_forward"] / (forward_pass + reverse_pass))
+    assert ops["n_params"] == 2 and 0 < ops["xla_forward"] < ops["xla_grad"]
 
 
 def test_cli_bench_dispatches(monkeypatch, tmp_path):
