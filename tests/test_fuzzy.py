@@ -219,9 +219,11 @@ def test_closed_form_with_random_rule_tables():
 
 
 def test_singleton_against_numpy():
-    params = fuzzy_params()
     c = np.asarray(PAPER_CENTRES)
-    consequent_centres = np.array([c[SET_NAMES.index(t)] for _, _, t in PAPER_RULES])
+    # Each universe its own centres, so that a surface reading another universe's sets fails.
+    angle_c, velocity_c, torque_c = c * 1.1, np.array([-0.9, -0.55, 0.05, 0.4, 1.05]), np.array([-1.04, -0.51, 0.01, 0.49, 1.02])
+    params = fuzzy_params()._replace(angle_centres=jnp.asarray(angle_c), velocity_centres=jnp.asarray(velocity_c), torque_centres=jnp.asarray(torque_c))
+    consequent_centres = np.array([torque_c[SET_NAMES.index(t)] for _, _, t in PAPER_RULES])
     rng = np.random.default_rng(3)
     pairs = rng.uniform(-1.0, 1.0, size=(200, 2))
     # All 200 points in one compiled call (200 op-by-op evaluations take longer).
@@ -229,14 +231,14 @@ def test_singleton_against_numpy():
     ours_all = np.asarray(surface(pairs[:, 0], pairs[:, 1]))
     n_fired = 0
     for (e, ed), ours in zip(pairs, ours_all):
-        w = _rule_strengths_np(e, ed, PAPER_RULES, c, c)
+        w = _rule_strengths_np(e, ed, PAPER_RULES, angle_c, velocity_c)
         expected = np.sum(w * consequent_centres) / np.sum(w) if np.sum(w) > 0 else 0.0
         n_fired += np.sum(w) > 0
         np.testing.assert_allclose(ours, expected, rtol=0, atol=ATOL_ROUND)
     assert 100 < n_fired < 200
     # A hand-checked point: e = -0.25 is half NS, half ZE; e_dot = 0 is ZE. Rules 2 (NS,ZE->PS)
     # and 6 (ZE,ZE->ZE) fire at 0.5 each: (0.5 * 0.5 + 0.5 * 0) / 1 = 0.25.
-    assert float(fuzzy_surface(params, -0.25, 0.0, defuzz="singleton")) == pytest.approx(0.25, abs=ATOL_ROUND)
+    assert float(fuzzy_surface(fuzzy_params(), -0.25, 0.0, defuzz="singleton")) == pytest.approx(0.25, abs=ATOL_ROUND)
 
 
 # -- 5. controller -----------------------------------------------------------------------------

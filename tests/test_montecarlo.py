@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import jaxflex as jf
-from jaxflex import montecarlo
+from jaxflex import beam, montecarlo
+from jaxflex.controllers import OpenLoopParams, open_loop
 from jaxflex.beam import BeamParams
 from jaxflex.montecarlo import MCConfig, controller_and_params, run_montecarlo
 from jaxflex.plant import discretize, make_plant
@@ -28,22 +29,37 @@ def test_summary_matches_direct_rollouts(tmp_path):
     controller, params = controller_and_params("dfs", {}, 1e-3, config.capacity)
 
     @jax.jit
-    def tip(sc):
-        plant = jf.discretize(jf.make_plant(jf.scenarios.perturbed_params(jf.BeamParams(), sc.plant), 2), 1e-3, "rk4")
-        return jf.rollout(plant, controller, params, sc).z[:, 1]
+    def direct(sc):
+        arm = jf.scenarios.perturbed_params(jf.BeamParams(), sc.plant)
+        plant = jf.discretize(jf.make_plant(arm, 2), 1e-3, "rk4")
+        freqs = beam.natural_frequencies_hz(arm, 2)
+        closed = jf.rollout(plant, controller, params, sc, output="metrics", mode_freqs_hz=freqs)
+        opened = jf.rollout(plant, open_loop(), OpenLoopParams(), sc, output="metrics", mode_freqs_hz=freqs)
+        return jf.rollout(plant, controller, params, sc).z[:, 1], closed.tip_ise, closed.modal_energy, opened.modal_energy
 
-    peaks = []
+    peaks, ise, closed_energy, open_energy = [], [], [], []
     for index, count in ((0, 32), (1, 18)):
         spec = SPEC if index == 0 else ScenarioSpec(**{**SPEC.__dict__, "include_paper": False})
         batch = sample_scenarios(spec, jax.random.fold_in(jax.random.key(0), index), 32)
         for i in range(count):
-            peaks.append(np.abs(np.asarray(tip(jax.tree.map(lambda a: a[i], batch)))).max())
+            tip, tip_ise, closed, opened = direct(jax.tree.map(lambda a: a[i], batch))
+            peaks.append(np.abs(np.asarray(tip)).max())
+            ise.append(float(tip_ise))
+            closed_energy.append(np.asarray(closed))
+            open_energy.append(np.asarray(opened))
     peaks = np.array(peaks)
     stats = summary["metrics"]["peak_tip_deflection_m"]
     np.testing.assert_allclose(stats["mean"], peaks.mean(), rtol=1e-10)
     np.testing.assert_allclose(stats["std"], peaks.std(), rtol=1e-8)
     np.testing.assert_allclose([stats["p10"], stats["p50"], stats["p90"]], np.percentile(peaks, [10, 50, 90]), rtol=1e-10)
     assert stats["min"] == pytest.approx(peaks.min()) and stats["max"] == pytest.approx(peaks.max())
+    # each column is its own metric: tip ISE, and the dB reduction 10 log10(open / closed) of
+    # the windowed modal energy at each mode
+    np.testing.assert_allclose(summary["metrics"]["tip_ise"]["mean"], np.mean(ise), rtol=1e-10)
+    reduction = 10 * np.log10(np.array(open_energy) / np.array(closed_energy))
+    for mode in (1, 2):
+        got = summary["metrics"][f"reduction_db_mode{mode}"]
+        np.testing.assert_allclose([got["mean"], got["p50"]], [reduction[:, mode - 1].mean(), np.median(reduction[:, mode - 1])], rtol=1e-9)
     assert summary["diverged_fraction"] == 0.0
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert set(saved["metrics"]) >= {"settling_time_s", "peak_tip_deflection_m", "tip_ise", "control_effort", "final_hub_angle_rad", "reduction_db_mode1", "reduction_db_mode2"}

@@ -158,3 +158,24 @@ def test_rk4_step_that_amplifies_a_mode_is_refused_by_the_configs():
         with pytest.raises(ValueError, match="dt must be a finite scalar > 0"):
             check_rk4_step(plant, dt)
     assert np.abs(np.linalg.eigvals(np.asarray(discretize(plant, 2.7 / omega, "rk4").Ad))).max() <= 1
+
+
+def test_rk4_step_check_refuses_exactly_where_the_rk4_map_grows():
+    """On either side of the largest stable step, found on the RK4 map itself (its spectral
+    radius, the rigid-body eigenvalue 1 included), the check passes and then refuses: one step
+    past it the map grows by about 0.7 % per step."""
+    from jaxflex.plant import check_rk4_step
+
+    plant = make_plant(BeamParams(length_m=0.25, thickness_m=8e-3), 2)
+
+    def grows(dt):
+        return np.abs(np.linalg.eigvals(np.asarray(discretize(plant, dt, "rk4").Ad))).max() > 1 + 1e-9
+
+    lo, hi = 3e-4, 1e-3  # stable, unstable
+    assert not grows(lo) and grows(hi)
+    for _ in range(50):
+        lo, hi = (lo, (lo + hi) / 2) if grows((lo + hi) / 2) else ((lo + hi) / 2, hi)
+    check_rk4_step(plant, lo * (1 - 1e-3))
+    assert np.abs(np.linalg.eigvals(np.asarray(discretize(plant, hi * (1 + 1e-3), "rk4").Ad))).max() < 1.01
+    with pytest.raises(ValueError, match="method = 'rk4' with dt"):
+        check_rk4_step(plant, hi * (1 + 1e-3))

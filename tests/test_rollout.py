@@ -271,6 +271,19 @@ def test_running_metrics_equal_trajectory_metrics(plant2, controller, params):
     assert not bool(m.diverged)
 
 
+def test_settling_time_at_the_two_ends(plant2):
+    """A tip that never leaves zero has settled at t = 0; one still outside the band at the
+    last sample (the open loop rings for seconds) has not settled: +inf, as the trajectory
+    says."""
+    steps = 200
+    still = Scenario(jnp.zeros(6), jnp.zeros((steps, 1)), jnp.zeros((steps, 2)))
+    assert float(jf.rollout(plant2, open_loop(), OpenLoopParams(), still, output="metrics").settling_time_s) == 0.0
+    ringing = paper_scenario(plant2, horizon_s=0.2)
+    tip = np.abs(np.asarray(jf.rollout(plant2, open_loop(), OpenLoopParams(), ringing).z[:, 1]))
+    assert tip[-1] > 0.02 * tip.max()
+    assert float(jf.rollout(plant2, open_loop(), OpenLoopParams(), ringing, output="metrics").settling_time_s) == np.inf
+
+
 def test_running_metrics_report_divergence(plant2):
     sc = paper_scenario(plant2, horizon_s=2.0)
     m = jf.rollout(plant2, pd(), PDParams(-50.0, -1.0), sc, output="metrics")  # positive feedback

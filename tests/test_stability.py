@@ -139,6 +139,10 @@ def test_wrong_sign_gain_has_a_real_crossing_through_zero(plant, crit):
         assert np.sign(real[np.argmin(np.abs(real))].real) == sign
     roots = np.asarray(st.characteristic_roots(plant, -55.0, zero.tau_s))
     assert np.min(np.abs(roots)) < 1e-6
+    # the counted switches: one root (not a pair) enters through 0, as the roots themselves say
+    for factor in (0.5, 0.9, 1.1, 2.0):
+        roots = np.asarray(st.characteristic_roots(plant, -55.0, zero.tau_s * factor))
+        assert int(st.unstable_root_count(result, zero.tau_s * factor)) == int(np.sum(roots.real > 1e-6)), factor
     assert crit[PAPER_K].zero_crossing is None  # k > 0: the root at 0 stays simple
 
 

@@ -110,6 +110,21 @@ def test_log_spectral_radius_gradient_at_a_whole_delay(plant2, delay_steps):
     assert float(g_d) == pytest.approx(from_above, rel=1e-4)
 
 
+def test_stability_penalty_is_in_decay_rate_per_second():
+    """The penalty compares the slowest mode's decay rate -log(radius) / dt (1/s) with
+    min_decay_rate: half the minimum costs weight * (min / 2)^2, twice the minimum nothing,
+    whatever the sample time."""
+    spec = ObjectiveSpec(stability_weight=3.0, min_decay_rate=2.0)
+    for dt in (1e-3, 1e-4):
+        assert float(objectives.stability_penalty(jnp.asarray(-dt * 1.0), dt, spec)) == pytest.approx(3.0 * 1.0**2, rel=1e-12)
+        assert float(objectives.stability_penalty(jnp.asarray(-dt * 4.0), dt, spec)) == 0.0
+    # the paper's loop (k = 55, tau = 5 ms) decays at about 9 /s: the default does not penalise it
+    plant = jf.discretize(jf.make_plant(n_modes=2), 1e-3, "zoh")
+    log_r = float(np.log(stability.spectral_radius(plant, 55.0, 5)))
+    assert 5.0 < -log_r / 1e-3 < 20.0
+    assert float(objectives.stability_penalty(jnp.asarray(log_r), 1e-3, ObjectiveSpec())) == 0.0
+
+
 def test_tuner_objective_gradient_matches_fd():
     cfg = TuneConfig(controller="dfs", **SMALL, objective=ObjectiveSpec(tip_ise=1.0, hub_ise=0.3, effort=0.1, vibration=0.5, min_decay_rate=50.0))
     problem = Problem(cfg)
@@ -194,6 +209,17 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
         tune(dataclasses.replace(cfg, controller="fuzzy"), tmp_path / "cut", resume=True, progress=False)
     with pytest.raises(ValueError, match="pass --resume"):
         tune(cfg, tmp_path / "cut", progress=False)
+
+
+def test_early_stop_after_patience_validations_without_improvement(tmp_path):
+    """An optimizer that climbs the objective: the held-out value worsens at every validation
+    (eval_every = 1), and with patience = 2 the run stops after the second one, at step 3."""
+    import optax
+
+    state = tune(TuneConfig(controller="dfs", steps=20, eval_every=1, patience=2, **SHARED), tmp_path, progress=False, optimizer=optax.sgd(-0.05))
+    vals = [h["val_objective"] for h in state["history"][1:]]
+    assert state["stopped_early"] and state["step"] == 3 and state["best_step"] == 0
+    assert vals[0] > state["best_val"] and vals[1] > state["best_val"]
 
 
 @pytest.mark.parametrize("controller", ["dfs", "fuzzy"])
@@ -303,14 +329,18 @@ def test_cli_tune_with_toml_config(tmp_path):
 
 def test_checkpoint_round_trips_an_infinite_best_value(tmp_path):
     """JSON has no inf: a run whose initial held-out objective was not finite resumes with
-    best_val = inf (any finite value improves on it), not None."""
+    best_val = inf (any finite value improves on it), not None; the current point, the
+    optimizer state and the best point come back each as saved."""
     from tuning.tuner import _load_checkpoint, _save_checkpoint
 
     raw = {"log_k": jnp.zeros(()), "tau_z": jnp.ones(())}
-    state = {"raw": raw, "opt_state": (), "best_raw": raw, "best_val": float("inf"), "step": 3, "history": []}
+    best = {"log_k": jnp.full((), 0.25), "tau_z": jnp.full((), 0.5)}
+    opt_state = (jnp.arange(3.0),)
+    state = {"raw": raw, "opt_state": opt_state, "best_raw": best, "best_val": float("inf"), "step": 3, "history": []}
     _save_checkpoint(str(tmp_path / CHECKPOINT), state)
-    loaded = _load_checkpoint(str(tmp_path / CHECKPOINT), (raw, (), raw))
+    loaded = _load_checkpoint(str(tmp_path / CHECKPOINT), (raw, opt_state, raw))
     assert loaded["best_val"] == float("inf") and loaded["step"] == 3
+    tree_allclose((loaded["raw"], loaded["opt_state"], loaded["best_raw"]), (raw, opt_state, best), rtol=0)
 
 
 def test_resume_from_an_unreadable_checkpoint_is_refused(tmp_path):
