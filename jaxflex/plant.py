@@ -128,12 +128,29 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") ->
     return _discretize(plant, dt, method)
 
 
-def check_rk4_step(plant: LinearPlant, dt: float) -> None:
-    """Refuse an RK4 step of ``dt`` that amplifies a mode the continuous plant does not grow.
+def rk4_amplified_omega(plant: LinearPlant, dt: float) -> float | None:
+    """The fastest mode (rad/s) that one RK4 step of ``dt`` amplifies though the continuous
+    plant does not grow it, or None when there is none.
 
     One RK4 step multiplies the mode ``exp(lambda t)`` by ``R(lambda dt)``, ``R(z) = 1 + z +
     z^2/2 + z^3/6 + z^4/24``; for a lightly damped mode ``|R| > 1`` once ``omega dt`` passes
     about 2.83, and the sampled plant blows up where the arm rings down.
+
+    Args:
+      plant: a concrete continuous-time plant.
+      dt: sample time (s), finite and > 0.
+    """
+    check_dt(dt)
+    lam = np.linalg.eigvals(np.asarray(plant.A, dtype=float))
+    z = lam * float(dt)
+    gain = np.abs(1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24)
+    bad = (gain > 1 + 1e-9) & (lam.real <= 0)
+    return float(np.max(np.abs(lam[bad]))) if np.any(bad) else None
+
+
+def check_rk4_step(plant: LinearPlant, dt: float) -> None:
+    """Refuse an RK4 step of ``dt`` that amplifies a mode the continuous plant does not grow
+    (:func:`rk4_amplified_omega`).
 
     Args:
       plant: a concrete continuous-time plant.
@@ -143,13 +160,8 @@ def check_rk4_step(plant: LinearPlant, dt: float) -> None:
       ValueError: naming the fastest such mode, its ``omega dt`` and the ZOH alternative
         (or naming ``dt`` when it is not a finite number > 0).
     """
-    check_dt(dt)
-    lam = np.linalg.eigvals(np.asarray(plant.A, dtype=float))
-    z = lam * float(dt)
-    gain = np.abs(1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24)
-    bad = (gain > 1 + 1e-9) & (lam.real <= 0)
-    if np.any(bad):
-        fastest = np.max(np.abs(lam[bad]))
+    fastest = rk4_amplified_omega(plant, dt)
+    if fastest is not None:
         raise ValueError(
             f"method = 'rk4' with dt = {float(dt):g} s is unstable for this arm: its mode at {fastest / (2 * np.pi):.4g} Hz has "
             f"omega dt = {fastest * float(dt):.3g} (RK4 holds up to about 2.8). Use method = 'zoh' (exact for any dt) or dt <= {2.8 / fastest:.3g} s"

@@ -80,7 +80,8 @@ def reduction_bars(reductions: Mapping[str, Mapping[str, Sequence[float]]], pape
     """Vibration reduction (dB) per mode, grouped by controller, one bar per PSD estimator.
 
     Args:
-      reductions: estimator label -> controller -> [n_modes] dB.
+      reductions: estimator label -> controller -> [n_modes] dB; None (a diverged run) draws
+        no bar.
       paper: controller -> the paper's dB per mode, drawn as hatched bars.
     """
     estimators = list(reductions)
@@ -92,7 +93,7 @@ def reduction_bars(reductions: Mapping[str, Mapping[str, Sequence[float]]], pape
     fig, ax = plt.subplots(figsize=(7.5, 3.8))
     x = np.arange(len(groups))
     for i, est in enumerate(estimators):
-        vals = [reductions[est][c][m] for c, m in groups]
+        vals = np.array([np.nan if reductions[est][c][m] is None else reductions[est][c][m] for c, m in groups], float)
         ax.bar(x + (i - (n_bars - 1) / 2) * width, np.nan_to_num(vals, nan=0.0), width, label=f"jaxflex, {est}")
     if paper:
         vals = [paper[c][m] if c in paper and m < len(paper[c]) else 0.0 for c, m in groups]

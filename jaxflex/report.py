@@ -26,7 +26,7 @@ from jaxflex.controllers import by_name
 from jaxflex.controllers.base import same_dt
 from jaxflex.controllers.fuzzy import fuzzy_params, fuzzy_surface
 from jaxflex.controllers.registry import PARAMETERS
-from jaxflex.plant import METHODS, discretize, make_plant
+from jaxflex.plant import METHODS, discretize, make_plant, rk4_amplified_omega
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import paper_scenario
 
@@ -306,6 +306,14 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
       The results dictionary written to results.json.
     """
     n_modes = beam.check_n_modes(n_modes)
+    fastest = rk4_amplified_omega(make_plant(beam.BeamParams(), n_modes), DT)
+    if fastest is not None:
+        held = max(m for m in range(1, n_modes) if rk4_amplified_omega(make_plant(beam.BeamParams(), m), DT) is None)
+        raise ValueError(
+            f"n_modes = {n_modes} (--modes): the paper's integrator, RK4 at {DT:g} s, amplifies the mode at {fastest / (2 * np.pi):.4g} Hz "
+            f"(omega dt = {fastest * DT:.3g}; RK4 holds up to about 2.8), so the runs would blow up. reproduce takes n_modes <= {held}; "
+            "tune and montecarlo take more with method = 'zoh'"
+        )
     tuned = load_tuned(params_file) if params_file is not None else None
     if tuned is not None:
         try:

@@ -89,6 +89,24 @@ def test_bad_modes_is_refused(capsys):
     assert "expected an integer >= 1" in capsys.readouterr().err
 
 
+def test_modes_the_papers_rk4_step_cannot_hold_are_refused_before_any_work(tmp_path, capsys):
+    """At 8 modes the highest (516 Hz) has omega dt = 3.25 > 2.8 at 1 ms: every RK4 run blew
+    up and the figure code crashed on the missing dB values. Refused by name, nothing written."""
+    assert cli.main(["reproduce", "--modes", "8", "--out", str(tmp_path / "r8")]) == 2
+    err = capsys.readouterr().err
+    assert "n_modes = 8 (--modes)" in err and "516.5 Hz" in err and "n_modes <= 7" in err
+    assert not (tmp_path / "r8").exists()
+
+
+def test_reduction_bars_leave_out_a_diverged_run():
+    from jaxflex import plotting
+
+    fig = plotting.reduction_bars({"hann-1024": {"dfs": [60.0, 70.0], "fuzzy": [None, None]}})
+    heights = [p.get_height() for p in fig.axes[0].patches]
+    plotting.plt.close(fig)
+    assert heights == [60.0, 70.0, 0.0, 0.0]
+
+
 def test_failed_write_keeps_the_previous_file(tmp_path):
     path = tmp_path / "results.json"
     fileio.write_json(path, {"good": 1})
