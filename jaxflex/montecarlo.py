@@ -21,6 +21,7 @@ import json
 import math
 import os
 import sys
+import zipfile
 from typing import Any, Callable, Sequence
 
 import jax
@@ -269,6 +270,10 @@ def run_montecarlo(
         _check_resume(meta_path, meta)
     elif resume:
         raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no montecarlo.json); leave out --resume to start one")
+    elif os.path.isdir(os.path.join(out_dir, "chunks")) and os.listdir(os.path.join(out_dir, "chunks")):
+        # Chunks without the metadata that says which configuration made them: a new run
+        # would take them as its own.
+        raise ValueError(f"{out_dir}/chunks holds chunk files but {out_dir} has no montecarlo.json to say which run wrote them; choose another --out")
     os.makedirs(os.path.join(out_dir, "chunks"), exist_ok=True)
     runner = _Runner(config)
 
@@ -283,8 +288,7 @@ def run_montecarlo(
         for index in range(n_chunks):
             path = _chunk_path(out_dir, index)
             if os.path.exists(path):
-                with np.load(path) as data:
-                    rows = {k: data[k] for k in data.files}
+                rows = _load_chunk(path, runner.chunk, config.n_modes)
             else:
                 rows = runner.run_chunk(index)
                 if not os.path.exists(meta_path):
@@ -316,6 +320,21 @@ def run_montecarlo(
     summary["figures"] = _figures(runner, merged, out_dir) if figures else []
     fileio.write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary
+
+
+def _load_chunk(path: str, chunk: int, n_modes: int) -> dict[str, np.ndarray]:
+    """A chunk file's columns, refused by name when it is damaged or incomplete."""
+    expected = {*metric_names(n_modes), "diverged"}
+    fix = "delete it and pass --resume again to compute that chunk anew"
+    try:
+        with np.load(path) as data:
+            rows = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        raise ValueError(f"--resume: cannot read {path} ({type(err).__name__}: {err}); {fix}") from None
+    if set(rows) != expected or any(v.shape != (chunk,) for v in rows.values()):
+        got = ", ".join(f"{k} {v.shape}" for k, v in sorted(rows.items()))
+        raise ValueError(f"--resume: {path} does not hold this run's {chunk}-scenario columns ({got}); {fix}")
+    return rows
 
 
 def _check_resume(meta_path: str, meta: dict[str, Any]) -> None:

@@ -109,6 +109,20 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     with pytest.raises(ValueError, match="holds no Monte Carlo run"):
         run_montecarlo(config, tmp_path / "tune", resume=True, progress=False)
     assert not list((tmp_path / "tune").iterdir())
+    # a damaged or foreign chunk is named, with what to do, not met with a zip or index error
+    chunk = tmp_path / "cut" / "chunks" / "chunk_000003.npz"
+    good = chunk.read_bytes()
+    chunk.write_bytes(good[: len(good) // 2])
+    with pytest.raises(ValueError, match=r"--resume: cannot read .*chunk_000003.npz .*; delete it and pass --resume again"):
+        run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
+    np.savez(chunk, tip_ise=np.zeros(15))
+    with pytest.raises(ValueError, match=r"chunk_000003.npz does not hold this run's 15-scenario columns \(tip_ise \(15,\)\)"):
+        run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
+    # chunks without montecarlo.json cannot be matched to a configuration: a new run would
+    # have taken them as its own
+    (tmp_path / "cut" / "montecarlo.json").unlink()
+    with pytest.raises(ValueError, match="holds chunk files but .* has no montecarlo.json"):
+        run_montecarlo(MCConfig(controller="fuzzy", n_scenarios=70, chunk=15, scenarios=SPEC), tmp_path / "cut", progress=False)
 
 
 # FULL_CONFIG through the command line, in float64 so that the statistics can be compared to
