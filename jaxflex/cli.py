@@ -260,6 +260,8 @@ def _tune(args: argparse.Namespace) -> int:
     print(f"tuned {summary['controller']}: {gains(summary['params'])} (paper: {gains(summary['paper_params'])})")
     print(f"objective, training   {obj['train']['before']:.4g} -> {obj['train']['after']:.4g}")
     print(f"objective, held-out   {obj['heldout']['before']:.4g} -> {obj['heldout']['after']:.4g}")
+    stopped = f", stopped early: {config.patience} validations in a row without a better held-out objective" if summary["stopped_early"] else ""
+    print(f"updates {summary['steps_run']} of {config.steps}{stopped}; the tuned gains are the point after {summary['best_step']} updates")
     if "stability" in summary:
         st = summary["stability"]
         part = " of the DFS part alone (the fuzzy part is nonlinear)" if summary["controller"] == "dfs+fuzzy" else ""

@@ -85,6 +85,12 @@ def test_settling_time_never_settles_and_always_inside():
     impulse = np.zeros(1000)
     impulse[0] = 1.0
     assert float(settling_time(impulse, DT)) == DT  # only sample 0 is outside
+    # a diverged record has no settling time (it read 0 for an all-NaN signal)
+    for bad in (np.nan, np.inf):
+        assert math.isnan(float(settling_time(np.full(1000, bad), DT)))
+        assert math.isnan(float(settling_time(np.where(t > 0.5, bad, tone), DT)))
+    both = np.asarray(settling_time(np.stack([impulse, np.full(1000, np.nan)], axis=1), DT))
+    assert both[0] == DT and math.isnan(both[1])
 
 
 def test_settling_time_columns_and_validation():

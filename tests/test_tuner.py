@@ -304,7 +304,7 @@ def test_bad_input_is_refused(tmp_path):
     assert (tmp_path / CHECKPOINT).exists()
 
 
-def test_cli_tune_with_toml_config(tmp_path):
+def test_cli_tune_with_toml_config(tmp_path, capsys):
     from jaxflex import cli
 
     config = tmp_path / "tune.toml"
@@ -320,6 +320,7 @@ def test_cli_tune_with_toml_config(tmp_path):
     saved = json.loads((tmp_path / "o" / "tuned.json").read_text())
     assert saved["config"]["objective"]["cvar_level"] == 0.8 and saved["config"]["scenarios"]["horizon_s"] == 0.4
     assert saved["config"]["n_heldout"] == 12 and saved["config"]["n_scenarios"] == 24 and saved["steps_run"] == 4
+    assert f"updates 4 of 4; the tuned gains are the point after {saved['best_step']} updates" in capsys.readouterr().out
     for name in saved["figures"]:
         assert (tmp_path / "o" / name).read_bytes()[:4] == b"\x89PNG"
     bad = tmp_path / "bad.toml"

@@ -65,7 +65,7 @@ def settling_time(s: ArrayLike, dt: ArrayLike, *, band: float = 0.02, final_frac
     is outside the band (a constant signal, or ``band >= 1``), and ``+inf`` when the last sample is outside the band
     (the record ends before the signal settles). Because the band is measured from
     ``s_f``, a decaying oscillation around a nonzero offset is handled correctly. A
-    non-finite ``s`` gives a meaningless result: check ``diverged`` first.
+    signal with a non-finite sample (a diverged run) has no settling time: NaN.
 
     Args:
       s: ``[T]`` or ``[T, n]`` signal (any unit), time first.
@@ -105,7 +105,8 @@ def _settling_time(s: jax.Array, dt: jax.Array, band: jax.Array, n_final: int) -
     outside = dev > threshold  # [T, (n)]
     last_outside = (n_t - 1) - jnp.argmax(outside[::-1], axis=0)  # valid where any(outside)
     t_settle = jnp.where(jnp.any(outside, axis=0), (last_outside + 1).astype(s.dtype) * dt, jnp.zeros((), s.dtype))
-    return jnp.where(outside[-1], jnp.asarray(jnp.inf, s.dtype), t_settle)
+    t_settle = jnp.where(outside[-1], jnp.asarray(jnp.inf, s.dtype), t_settle)
+    return jnp.where(jnp.all(jnp.isfinite(s), axis=0), t_settle, jnp.asarray(jnp.nan, s.dtype))
 
 
 def peaks(s: ArrayLike) -> tuple[jax.Array, jax.Array]:
