@@ -32,7 +32,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxflex import beam, checks, fileio
 from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
-from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, param_values
+from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
 from jaxflex.plant import METHODS, check_rk4_step, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, perturbed_params, sample_scenarios, scenario_plant
@@ -239,7 +239,7 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
         "n_scenarios": int(diverged.size),
         "diverged_fraction": float(diverged.mean()),
         "controller": config.controller,
-        "params": dict(config.params),
+        "params": {name: value for name, value in param_values(config.params).items() if name in PARAMETERS[config.controller]},
         "controller_options": {name: getattr(config, name) for name in CONFIG_OPTIONS},
         "metrics": {name: _statistics(columns[name][ok].astype(np.float64), config.percentiles) for name in names},
         "metric_definitions": names,
