@@ -255,7 +255,9 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
 def run_montecarlo(
     config: MCConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, figures: bool = True, on_chunk: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
-    """Run (or resume) the Monte Carlo; writes chunk files, summary.json and (optionally) figures.
+    """Run (or resume) the Monte Carlo; writes chunk files, summary.json (last) and (optionally)
+    figures. summary.json is there only when the run has finished: resuming removes the previous
+    one first, once the folder's configuration has been checked.
 
     Raises:
       ValueError: bad configuration, or a resume into a folder made by another configuration.
@@ -268,6 +270,10 @@ def run_montecarlo(
         if not resume:
             raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume to continue it, or choose another --out")
         _check_resume(meta_path, meta)
+        # summary.json is rewritten at the end; until then the previous one would describe
+        # another set of chunks.
+        if os.path.exists(os.path.join(out_dir, "summary.json")):
+            os.remove(os.path.join(out_dir, "summary.json"))
     elif resume:
         raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no montecarlo.json); leave out --resume to start one")
     elif os.path.isdir(os.path.join(out_dir, "chunks")) and os.listdir(os.path.join(out_dir, "chunks")):

@@ -105,6 +105,12 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
         run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=15, seed=3, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
     with pytest.raises(ValueError, match="has chunks of 15 scenarios, this one 16 .*; pass --chunk 15"):
         run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=16, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
+    # a refused resume leaves the finished run's summary; an interrupted one removes it, since
+    # it would describe the run before the resume
+    assert (tmp_path / "cut" / "summary.json").exists()
+    with pytest.raises(KeyboardInterrupt):
+        run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False, on_chunk=interrupt)
+    assert not (tmp_path / "cut" / "summary.json").exists()
     # resuming a folder without a Monte Carlo run is refused before anything is written
     (tmp_path / "tune").mkdir()
     with pytest.raises(ValueError, match="holds no Monte Carlo run"):

@@ -56,12 +56,23 @@ def _figures(state: dict[str, Any], out_dir: str) -> list[str]:
 
 
 def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, on_step: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """Tune, then write ``tuned.json`` (atomically, last), ``history.csv`` and figures into ``out_dir``."""
+    """Tune, then write ``tuned.json`` (atomically, last), ``history.csv`` and figures into ``out_dir``.
+
+    ``tuned.json`` is there only when the run has finished: resuming removes the previous one
+    first (once the checkpoint has been checked), and the end of the run writes it anew."""
     out_dir = os.fspath(out_dir)
-    state = tune(config, out_dir, resume=resume, progress=progress, on_step=on_step)
+    result = os.path.join(out_dir, "tuned.json")
+
+    def discard_previous_result() -> None:
+        # A resumed run's tuned.json is rewritten at its end; until then the previous one
+        # would describe fewer steps than checkpoint.npz and history.csv.
+        if os.path.exists(result):
+            os.remove(result)
+
+    state = tune(config, out_dir, resume=resume, progress=progress, on_step=on_step, on_start=discard_previous_result)
     if progress:
         print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)
     summary = summarize(state)
     summary["figures"] = _figures(state, out_dir)
-    fileio.write_json(os.path.join(out_dir, "tuned.json"), summary)
+    fileio.write_json(result, summary)
     return summary

@@ -281,6 +281,7 @@ def tune(
     progress: bool = True,
     on_step: Callable[[int], None] | None = None,
     optimizer: optax.GradientTransformation | None = None,
+    on_start: Callable[[], None] | None = None,
 ) -> dict[str, Any]:
     """Run (or resume) a tuning run; returns the final state (raw/best parameters, history).
 
@@ -297,6 +298,8 @@ def tune(
       optimizer: any optax GradientTransformation (default Adam at ``config.learning_rate``);
         gradients are clipped to ``config.clip_norm`` before it. A resumed run must use the
         same optimizer (its state is in the checkpoint).
+      on_start: called once the folder and the checkpoint's configuration have been checked,
+        before anything is sampled, compiled or written.
 
     Raises:
       ValueError: bad configuration, a checkpoint of another run, or an objective that
@@ -319,6 +322,8 @@ def tune(
             raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration ({what}; fingerprint {meta['fingerprint']} != {fingerprint})")
         if config.steps < meta["step"]:
             raise ValueError(f"--resume: the run in {out_dir} has taken {meta['step']} steps already; steps = {config.steps} cannot undo them (pass --steps {meta['step']} or more)")
+    if on_start is not None:
+        on_start()
     os.makedirs(out_dir, exist_ok=True)
     if progress:
         print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios, compiling", file=sys.stderr, flush=True)
