@@ -410,3 +410,11 @@ def test_huge_gain_is_refused_by_name_not_by_memory():
     for crossing in crit.crossings:
         looped = [np.real(st._dsdtau(A, b, c, 500.0, t, 1j * crossing.omega)[0]) for t in crossing.tau_s]
         np.testing.assert_allclose(crossing.re_dsdtau, looped, rtol=1e-12)
+
+
+def test_a_plant_whose_polynomial_overflows_is_refused_by_name():
+    """At 18 modes the characteristic polynomial's coefficients overflow float64; the analysis
+    said only 'Array must not contain infs or NaNs' (NumPy's root finder). 17 modes still work."""
+    with pytest.raises(ValueError, match=r"n_modes = 18: the coefficients of this plant's characteristic polynomial overflow float64"):
+        st.crossing_frequencies(make_plant(n_modes=18), 55.0)
+    assert st.crossing_frequencies(make_plant(n_modes=17), 55.0).size > 0

@@ -73,7 +73,7 @@ from jax.typing import ArrayLike
 
 from jaxflex import beam, checks
 from jaxflex.controllers.base import check_finite_scalar
-from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant
+from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant, n_modes_of
 
 _NULL_RTOL = 1e3  # x n_x eps x largest singular value: rank tolerance for the structural null space
 _ROOT_IMAG_RTOL = 1e-6  # a root v of F is real when |Im v| <= this x |v| (before polishing on 1 + 2k Re G)
@@ -348,6 +348,11 @@ def crossing_frequencies(plant: LinearPlant, k: ArrayLike) -> np.ndarray:
     polys = characteristic_polynomials(plant, k)
     scale = max(np.max(np.abs(np.linalg.eigvals(A))), 1.0)
     coef = _f_poly_in_v(polys, scale)
+    if not np.all(np.isfinite(coef)):
+        raise ValueError(
+            f"n_modes = {n_modes_of(plant)}: the coefficients of this plant's characteristic polynomial "
+            "overflow float64, so its crossings cannot be found; use fewer modes (the paper's arm holds up to 17)"
+        )
     coef = np.trim_zeros(coef / np.max(np.abs(coef)), "b")
     nu = np.polynomial.polynomial.polyroots(coef) if coef.shape[0] > 1 else np.zeros((0,))
     real = nu[(np.abs(nu.imag) <= _ROOT_IMAG_RTOL * np.abs(nu)) & (nu.real > 0)].real
