@@ -30,6 +30,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxflex import beam, checks, fileio
+from jaxflex.analysis.metrics import diverged
 from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
@@ -232,12 +233,12 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
     Non-finite values (a settling time of +inf: still outside the band at the end) are
     counted in ``nonfinite`` and left out of the statistics.
     """
-    diverged = columns["diverged"].astype(bool)
-    ok = ~diverged
+    failed = columns["diverged"].astype(bool)
+    ok = ~failed
     names = metric_names(config.n_modes)
     return {
-        "n_scenarios": int(diverged.size),
-        "diverged_fraction": float(diverged.mean()),
+        "n_scenarios": int(failed.size),
+        "diverged_fraction": float(failed.mean()),
         "controller": config.controller,
         "params": {name: value for name, value in param_values(config.params).items() if name in PARAMETERS[config.controller]},
         "controller_options": {name: getattr(config, name) for name in CONFIG_OPTIONS},
@@ -362,20 +363,29 @@ def _check_resume(meta_path: str, meta: dict[str, Any]) -> None:
         )
 
 
-def tip_bands(runner: _Runner, percentiles: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
-    """Percentiles over ``band_scenarios`` scenarios of chunk 0 of the tip deflection at each time."""
+def tip_bands(runner: _Runner, percentiles: Sequence[float]) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Percentiles of the tip deflection at each time over the first ``band_scenarios``
+    scenarios of chunk 0 that did not diverge (as in the histograms).
+
+    Returns:
+      ``(t, bands, kept, count)``: ``bands`` is ``[len(percentiles), T]`` (NaN when every run
+      diverged), over ``kept`` of the ``count`` scenarios drawn.
+    """
     config = runner.config
     count = min(config.band_scenarios, runner.chunk)
     batch = jax.tree.map(lambda a: a[:count], runner.sample(0))
     spec = config.scenarios
 
-    def one(scenario: Scenario) -> jax.Array:
+    def one(scenario: Scenario) -> tuple[jax.Array, jax.Array]:
         plant = runner.nominal if scenario.plant is None else scenario_plant(runner.beam, config.n_modes, spec.dt, config.method, scenario)
-        return rollout(plant, runner.controller, runner.params, scenario).z[:, 1]
+        traj = rollout(plant, runner.controller, runner.params, scenario)
+        return traj.z[:, 1], diverged(traj.x)
 
-    tips = np.asarray(jax.jit(jax.vmap(one))(batch))  # [count, T]
+    tips, bad = jax.jit(jax.vmap(one))(batch)
+    tips = np.asarray(tips)[~np.asarray(bad)]  # [kept, T]
     t = np.arange(tips.shape[1]) * spec.dt
-    return t, np.nanpercentile(tips, list(percentiles), axis=0)
+    bands = np.percentile(tips, list(percentiles), axis=0) if tips.shape[0] else np.full((len(percentiles), t.size), np.nan)
+    return t, bands, tips.shape[0], count
 
 
 def _figures(runner: _Runner, columns: dict[str, np.ndarray], out_dir: str) -> list[str]:
@@ -386,6 +396,7 @@ def _figures(runner: _Runner, columns: dict[str, np.ndarray], out_dir: str) -> l
     data = {name: columns[name][ok] for name in names}
     plotting.save(plotting.histograms(data, {n: n for n in names}, f"{runner.config.controller}: {int(ok.sum())} of {ok.size} runs (diverged left out)"), os.path.join(out_dir, "histograms.png"))
     percentiles = sorted(set(runner.config.percentiles) | {50.0})
-    t, bands = tip_bands(runner, percentiles)
-    plotting.save(plotting.percentile_bands(t, bands, percentiles, "Tip deflection (m)", f"{runner.config.controller}: tip deflection percentiles over {min(runner.config.band_scenarios, runner.chunk)} scenarios"), os.path.join(out_dir, "tip_bands.png"))
+    t, bands, kept, count = tip_bands(runner, percentiles)
+    title = f"{runner.config.controller}: tip deflection percentiles over {kept} of {count} scenarios (diverged left out)"
+    plotting.save(plotting.percentile_bands(t, bands, percentiles, "Tip deflection (m)", title), os.path.join(out_dir, "tip_bands.png"))
     return ["histograms.png", "tip_bands.png"]

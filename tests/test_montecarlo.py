@@ -74,6 +74,9 @@ def test_diverged_runs_are_counted_not_averaged(tmp_path):
     summary = run_montecarlo(config, tmp_path, progress=False, figures=False)
     assert summary["diverged_fraction"] == 1.0
     assert summary["metrics"]["tip_ise"]["count"] == 0 and summary["metrics"]["tip_ise"]["mean"] is None
+    # the tip bands leave them out too (they drew 1e22 m bands over a 2 ms axis)
+    t, bands, kept, count = montecarlo.tip_bands(montecarlo._Runner(config), [50.0])
+    assert (kept, count) == (0, 8) and bands.shape == (1, t.size) and np.all(np.isnan(bands))
 
 
 # The paper's loop over five chunks, the last one partial: the uninterrupted run of the resume
