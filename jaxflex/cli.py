@@ -80,9 +80,10 @@ def _parser() -> argparse.ArgumentParser:
     stab = sub.add_parser("stability", help="DFS stability: critical delays, rightmost root, sampled-loop spectral radius, (k, tau) chart")
     stab.add_argument("--k", type=float, default=55.0, help="DFS gain (N*m/rad; default 55, the paper's)")
     stab.add_argument("--tau", type=float, default=0.005, help="DFS delay (s), a whole number of samples (default 0.005)")
-    stab.add_argument("--modes", type=_positive_int, default=2, help="number of assumed modes (default 2)")
+    stab.add_argument("--modes", type=_positive_int, default=None, help="number of assumed modes (default: the config's n_modes, else 2)")
+    stab.add_argument("--dt", type=float, default=None, help="sample time of the sampled loop (s; default: the config's [scenarios] dt, else 0.001)")
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
-    stab.add_argument("--config", default=None, help="TOML file whose [beam] table is the arm (default the paper's); its other keys are ignored, so a tune or montecarlo config can be reused")
+    stab.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the arm (default the paper's), its n_modes and [scenarios] dt the defaults of --modes and --dt; other keys are ignored")
     stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
 
     bench = sub.add_parser("bench", help="quick benchmark of vectorised closed-loop rollouts (under two minutes); prints a table")
@@ -329,13 +330,16 @@ def _stability(args: argparse.Namespace) -> int:
 
     from jaxflex.beam import params_from_mapping
 
-    table = fileio.read_toml(args.config).get("beam", {}) if args.config else {}
-    arm = params_from_mapping(table)
-    result = run(args.out, k=args.k, tau_s=args.tau, n_modes=args.modes, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+    values = fileio.read_toml(args.config) if args.config else {}
+    arm = params_from_mapping(values.get("beam", {}))
+    scenarios = values.get("scenarios", {})
+    n_modes = args.modes if args.modes is not None else values.get("n_modes", 2)
+    dt = args.dt if args.dt is not None else (scenarios.get("dt", 1e-3) if isinstance(scenarios, dict) else 1e-3)
+    result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     first = result["first_destabilising_delay_s"]
     rk4 = result["spectral_radius_rk4"]
-    print(f"k = {args.k:g}, tau = {args.tau:g} s, {args.modes} modes: sampled-loop spectral radius {result['spectral_radius']:.6f} "
-          f"({'stable' if result['stable_sampled'] else 'unstable'}; the RK4-sampled loop of tune and montecarlo: {rk4:.6f}, {'stable' if rk4 < 1 else 'unstable'}), "
+    print(f"k = {args.k:g}, tau = {args.tau:g} s, {n_modes} modes, dt = {dt:g} s: sampled-loop spectral radius {result['spectral_radius']:.6f} "
+          f"({'stable' if result['stable_sampled'] else 'unstable'}; sampled by RK4, the default of tune and montecarlo: {rk4:.6f}, {'stable' if rk4 < 1 else 'unstable'}), "
           f"first destabilising delay {'none' if first is None else f'{first:g} s'}")
     print(f"wrote {os.path.join(args.out, 'stability.json')} and {os.path.join(args.out, 'stability_chart.png')}")
     return 0

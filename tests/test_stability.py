@@ -390,9 +390,15 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     config = tmp_path / "tune.toml"
     config.write_text('steps = 5\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
-    assert seen["beam_params"] == arm
+    assert seen["beam_params"] == arm and (seen["n_modes"], seen["dt"]) == (2, 1e-3)
     # the loop tune and montecarlo simulate by default (RK4) is printed beside the ZOH one
-    assert "spectral radius 0.500000 (stable; the RK4-sampled loop of tune and montecarlo: 11.440000, unstable)" in capsys.readouterr().out
+    assert "2 modes, dt = 0.001 s: sampled-loop spectral radius 0.500000 (stable; sampled by RK4, the default of tune and montecarlo: 11.440000, unstable)" in capsys.readouterr().out
+    # the tuned arm's model and sample time come from the config, unless the flags say otherwise
+    config.write_text('n_modes = 3\n[scenarios]\ndt = 5e-4\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
+    assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
+    assert (seen["n_modes"], seen["dt"]) == (3, 5e-4)
+    assert cli.main(["stability", "--config", str(config), "--modes", "2", "--dt", "0.002", "--out", str(tmp_path / "o")]) == 0
+    assert (seen["n_modes"], seen["dt"]) == (2, 0.002)
     config.write_text("[beam]\nlength = 0.6\n")
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
 
