@@ -132,7 +132,7 @@ def params_from_mapping(values: Mapping[str, Any]) -> BeamParams:
         finite number, or one out of its range (``check_beam_params``).
     """
     fileio.check_keys(values, BeamParams._fields, "beam")
-    params = BeamParams(**{key: checks.number(f"beam {key}", value) for key, value in values.items()})
+    params = BeamParams(**{key: checks.number(f"beam {key}", value, strict=key in _POSITIVE_FIELDS) for key, value in values.items()})
     check_beam_params(params)
     return params
 

@@ -86,7 +86,7 @@ def read_toml(path: str | os.PathLike, option: str = "--config") -> dict[str, An
             return tomllib.load(f)
     except OSError as err:
         raise ValueError(f"{option}: cannot read {path}: {err.strerror or err}") from None
-    except tomllib.TOMLDecodeError as err:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:  # TOML is UTF-8
         raise ValueError(f"{option}: {path} is not valid TOML: {err}") from None
 
 

@@ -258,8 +258,8 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
     try:
         with open(path, encoding="utf-8") as f:
             data = json.load(f)
-    except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(f"--params: cannot read {path}: {err}") from None
+    except (OSError, ValueError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        raise ValueError(f"--params: cannot read {path} as tuned.json: {err}") from None
     name = data.get("controller") if isinstance(data, dict) else None
     named = data.get("params") if isinstance(data, dict) else None
     if name not in TUNED_CONTROLLERS or not isinstance(named, dict):

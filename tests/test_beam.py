@@ -220,12 +220,17 @@ def test_params_from_mapping_reads_a_config_table():
     assert beam.plain_params(BeamParams(density_kg_m3=np.float32(2700.0))).density_kg_m3 == 2700.0
     for table, match in (
         ({"lenght_m": 1.0}, r"unknown beam key\(s\) \['lenght_m'\]"),
-        ({"length_m": "1"}, "beam length_m must be a finite number >= 0"),
+        ({"length_m": "1"}, "beam length_m must be a finite number > 0"),
         ({"payload_mass_kg": float("nan")}, "beam payload_mass_kg must be a finite number >= 0"),
-        ({"length_m": 0.0}, "BeamParams.length_m must be > 0"),
+        ({"length_m": -1.0}, "beam length_m must be a finite number > 0"),  # it said >= 0, then refused 0
+        ({"length_m": 0.0}, "beam length_m must be a finite number > 0"),
+        ({"payload_mass_kg": 0.0, "length_m": 0.6}, None),
         ({"rayleigh_alpha": 1.0}, "must be given together"),
         (5, "beam must be a table of keys"),
     ):
+        if match is None:
+            beam.params_from_mapping(table)  # a zero payload is an arm without one
+            continue
         with pytest.raises(ValueError, match=match):
             beam.params_from_mapping(table)
     with pytest.raises(ValueError, match="beam must be a BeamParams"):

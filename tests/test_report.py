@@ -230,10 +230,18 @@ def test_cli_failed_run_leaves_no_empty_out_folder(tmp_path, capsys, monkeypatch
 def test_cli_unreadable_config_is_named(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text("k = [\n")
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b'x = "\xff"\n')  # not UTF-8
+    cases = ((tmp_path / "missing.toml", "cannot read .*missing.toml: No such file or directory"), (bad, ".*bad.toml is not valid TOML"), (binary, ".*binary.toml is not valid TOML: 'utf-8' codec"))
     for command in ("tune", "montecarlo", "stability"):
-        for path, reason in ((tmp_path / "missing.toml", "cannot read .*missing.toml: No such file or directory"), (bad, ".*bad.toml is not valid TOML")):
+        for path, reason in cases:
             assert cli.main([command, "--config", str(path), "--out", str(tmp_path / command)]) == 2
             assert re.search(f"jaxflex {command}: error: --config: {reason}", capsys.readouterr().err), (command, path)
+            assert not (tmp_path / command).exists()
+    for command in ("reproduce", "montecarlo"):  # --params: a file that is not tuned.json, text or not
+        for path in (tmp_path / "bad.toml", binary):
+            assert cli.main([command, "--params", str(path), "--out", str(tmp_path / command)]) == 2
+            assert re.search(f"jaxflex {command}: error: --params: cannot read .*{path.name} as tuned.json", capsys.readouterr().err), (command, path)
             assert not (tmp_path / command).exists()
 
 
