@@ -110,9 +110,10 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-_RESUME_HINT = {
-    "tune": "; --resume continues from the last checkpoint",
-    "montecarlo": "; --resume continues from the chunks written",
+# What a run leaves to resume from, and the hint printed when it is there after Ctrl-C.
+_RESUME_FROM = {
+    "tune": ("checkpoint.npz", "; --resume continues from the last checkpoint"),
+    "montecarlo": ("montecarlo.json", "; --resume continues from the chunks written"),
 }
 
 
@@ -139,7 +140,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"jaxflex {args.command}: error: out of memory ({first}){hint}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"jaxflex {args.command}: interrupted{_RESUME_HINT.get(args.command, '')}", file=sys.stderr)
+        hint = ""
+        if args.command in _RESUME_FROM:
+            marker, resume = _RESUME_FROM[args.command]
+            hint = resume if os.path.exists(os.path.join(out, marker)) else "; nothing was written to resume from: run it again without --resume"
+        print(f"jaxflex {args.command}: interrupted{hint}", file=sys.stderr)
         return 130
     finally:
         if new_out:

@@ -190,12 +190,21 @@ def test_cli_refuses_bad_outputs_before_any_work(tmp_path, capsys):
 def test_cli_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatch):
     import tuning.run
 
-    def interrupted(*args, **kwargs):
+    def interrupted(config, out, **kwargs):
+        if checkpointed:
+            os.makedirs(out, exist_ok=True)
+            (tmp_path / "t" / "checkpoint.npz").write_bytes(b"")
         raise KeyboardInterrupt
 
     monkeypatch.setattr(tuning.run, "run_tune", interrupted)
+    checkpointed = True
     assert cli.main(["tune", "--out", str(tmp_path / "t"), "--no-progress"]) == 130
     assert "jaxflex tune: interrupted; --resume continues from the last checkpoint" in capsys.readouterr().err
+    # interrupted before its first checkpoint (while compiling): nothing to resume
+    checkpointed = False
+    assert cli.main(["tune", "--out", str(tmp_path / "u"), "--no-progress"]) == 130
+    assert "jaxflex tune: interrupted; nothing was written to resume from: run it again without --resume" in capsys.readouterr().err
+    assert not (tmp_path / "u").exists()
 
 
 def test_cli_failed_run_leaves_no_empty_out_folder(tmp_path, capsys, monkeypatch):
