@@ -179,10 +179,11 @@ def rollout(
     _check_inputs(plant, scenario, params, settling_band, mode_freqs_hz)
     if output not in OUTPUTS:
         raise ValueError(f"output must be one of {OUTPUTS}; got {output!r}")
-    if is_concrete(params):
-        controller.check(params)
+    # The sample times first: parameters checked against another dt give misleading messages.
     if controller.dt is not None and is_concrete(plant.dt) and not same_dt(controller.dt, float(plant.dt)):
         raise ValueError(f"the controller was built for dt = {controller.dt:g} s but the plant is sampled at dt = {float(plant.dt):g} s: build both with one dt")
+    if is_concrete(params):
+        controller.check(params)
 
     n_x = plant.Ad.shape[0]
     steps = scenario.force.shape[0]

@@ -210,6 +210,9 @@ def test_controller_built_for_another_dt_is_rejected(plant2):
     sc = paper_scenario(plant2, horizon_s=0.01)
     with pytest.raises(ValueError, match=r"controller was built for dt = 0.002 s but the plant is sampled at dt = 0.001 s"):
         jf.rollout(plant2, dfs(dt=2e-3), DFSParams(55.0, 0.006), sc)
+    # the paper's 5 ms is 2.5 samples of 2 ms: the dt is named, not the delay's rounding
+    with pytest.raises(ValueError, match=r"controller was built for dt = 0.002 s but the plant is sampled at dt = 0.001 s"):
+        jf.rollout(plant2, dfs(dt=2e-3), DFSParams(55.0, 0.005), sc)
     with pytest.raises(ValueError, match=r"built for dt = 0.002 s and dt = 0.001 s"):
         combine(dfs(dt=2e-3), dfs(dt=1e-3))
     assert combine(fuzzy(), dfs(dt=2e-3)).dt == 2e-3 and combine(pd(), fuzzy()).dt is None
