@@ -394,7 +394,7 @@ def _figures(runner: _Runner, columns: dict[str, np.ndarray], out_dir: str) -> l
     ok = ~columns["diverged"].astype(bool)
     names = metric_names(runner.config.n_modes)
     data = {name: columns[name][ok] for name in names}
-    plotting.save(plotting.histograms(data, {n: n for n in names}, f"{runner.config.controller}: {int(ok.sum())} of {ok.size} runs (diverged left out)"), os.path.join(out_dir, "histograms.png"))
+    plotting.save(plotting.histograms(data, names, f"{runner.config.controller}: {int(ok.sum())} of {ok.size} runs (diverged left out)"), os.path.join(out_dir, "histograms.png"))
     percentiles = sorted(set(runner.config.percentiles) | {50.0})
     t, bands, kept, count = tip_bands(runner, percentiles)
     title = f"{runner.config.controller}: tip deflection percentiles over {kept} of {count} scenarios (diverged left out)"

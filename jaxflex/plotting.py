@@ -7,6 +7,7 @@ Signals are time-first ``[T]``. A run flagged as diverged is not drawn as NaN: i
 from __future__ import annotations
 
 import os
+import textwrap
 from typing import Mapping, Sequence
 
 import matplotlib
@@ -145,7 +146,8 @@ def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val:
 
 
 def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title: str, bins: int = 50) -> plt.Figure:
-    """One histogram per metric (non-finite values left out and counted in the title)."""
+    """One histogram per metric (non-finite values left out and counted in the title), the
+    metric's ``labels`` entry (its definition and unit) under it."""
     names = list(data)
     cols = 3
     rows = -(-len(names) // cols)
@@ -156,7 +158,7 @@ def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title:
         if finite.size:
             ax.hist(finite, bins=bins, color="C0", alpha=0.8)
         ax.set_title(f"{name} ({values.size - finite.size} non-finite)" if finite.size < values.size else name, fontsize=9)
-        ax.set_xlabel(labels.get(name, name), fontsize=7)
+        ax.set_xlabel(textwrap.fill(labels.get(name, name), 60), fontsize=7)
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(names) :]:
         ax.axis("off")
