@@ -137,7 +137,7 @@ def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val:
     if len(val_steps):
         ax.semilogy(val_steps, val, "o-", label="held-out objective", color="C1", ms=3)
     ax.set_xlabel("Step")
-    ax.set_ylabel("Objective (normalised by the paper gains' mean)")
+    ax.set_ylabel("Objective (1 = paper gains, training)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(title)

@@ -217,8 +217,10 @@ def test_early_stop_after_patience_validations_without_improvement(tmp_path):
     import optax
 
     state = tune(TuneConfig(controller="dfs", steps=20, eval_every=1, patience=2, **SHARED), tmp_path, progress=False, optimizer=optax.sgd(-0.05))
-    vals = [h["val_objective"] for h in state["history"][1:]]
+    vals = [h["val_objective"] for h in state["history"]]
     assert state["stopped_early"] and state["step"] == 3 and state["best_step"] == 0
+    assert vals[0] == state["best_val"] and len(vals) == 3  # row 0 holds the initial point's validation
+    vals = vals[1:]
     assert vals[0] > state["best_val"] and vals[1] > state["best_val"]
 
 

@@ -333,13 +333,12 @@ def tune(
         template = (problem.initial_raw, problem.optimizer.init(problem.initial_raw), problem.initial_raw)
         state = _load_checkpoint(ckpt_path, template)
     else:
-        val0 = float(problem.evaluate(problem.initial_raw, problem.heldout)[0])
         state = {
             "step": 0,
             "raw": problem.initial_raw,
             "opt_state": problem.optimizer.init(problem.initial_raw),
             "best_raw": problem.initial_raw,
-            "best_val": val0 if math.isfinite(val0) else math.inf,  # any finite value improves on it
+            "best_val": math.inf,  # the validation at step 0 sets it; any finite value improves on it
             "best_step": 0,
             "bad_evals": 0,
             "stopped_early": False,
@@ -368,7 +367,7 @@ def tune(
             state["raw"], state["opt_state"], state["step"] = raw, opt_state, n + 1
             row = {"step": n, **{k: float(v) for k, v in info.items()}}
             row.update(problem.tc.named(problem.tc.to_physical(at)))
-            if (n > 0 and n % config.eval_every == 0) or n + 1 == config.steps:
+            if n % config.eval_every == 0 or n + 1 == config.steps:
                 val = float(problem.evaluate(at, problem.heldout)[0])
                 row["val_objective"] = val
                 if val < state["best_val"]:
