@@ -36,6 +36,14 @@ def test_linear_read_is_exact_at_whole_samples_and_interpolates_between():
         np.testing.assert_allclose(delay.delay_read(state, d, "linear"), ys[-1 - d], rtol=1e-14)
         np.testing.assert_allclose(delay.delay_read(state, d, "nearest"), ys[-1 - d], rtol=1e-14)
     np.testing.assert_allclose(delay.delay_read(state, 2.25, "linear"), 0.75 * ys[-3] + 0.25 * ys[-4], rtol=1e-14)
+    # float32's 0.005 / 1e-3 is 4.9999995: the nearest read rounds it to 5 samples, not down to 4
+    d32 = np.float32(0.005) / np.float32(1e-3)
+    assert d32 < 5
+    np.testing.assert_array_equal(delay.delay_read(state, d32, "nearest"), ys[-6])
+    np.testing.assert_array_equal(delay.delay_read(state, 4.4, "nearest"), ys[-5])
+    # beyond the buffer the read is clamped to its oldest sample, whatever the interpolation
+    for interpolation in ("nearest", "linear", "cubic"):
+        np.testing.assert_allclose(delay.delay_read(state, 6.7, interpolation), delay.delay_read(state, 6, interpolation), rtol=1e-14)
     g = jax.grad(lambda d: delay.delay_read(state, d, "linear")[0])(2.25)
     np.testing.assert_allclose(g, ys[-4, 0] - ys[-3, 0], rtol=1e-14)
 

@@ -1,0 +1,66 @@
+"""What sample_scenarios draws, against the closed form of each distribution of ScenarioSpec
+(large batches; the tolerances are a few standard errors)."""
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from jaxflex.scenarios import ScenarioSpec, _paper_x0, sample_scenarios
+
+N = 4000
+REL = 4 / np.sqrt(N)  # a few relative standard errors of a mean or a standard deviation
+SPEC = ScenarioSpec(
+    horizon_s=0.2, q0_std_m=2e-3, qdot0_std_m_s=3e-5, theta0_std_rad=0.01, impulse_max_n=0.4, impulse_duration_s=0.007,
+    step_max_n=0.2, noise_angle_rad=1e-4, noise_velocity_rad_s=5e-3, youngs_modulus_rel=0.1, density_rel=0.05,
+    hub_inertia_rel=0.2, payload_max_kg=0.03, include_paper=False,
+)
+
+
+def draw(spec):
+    return jax.tree.map(np.asarray, sample_scenarios(spec, jax.random.key(1), N, n_modes=2, dtype=np.float64))
+
+
+def test_initial_state_noise_and_plant_follow_their_distributions():
+    sc = draw(SPEC)
+    # initial state [theta, q1, q2, theta_dot, q1_dot, q2_dot]
+    np.testing.assert_allclose(sc.x0.std(axis=0), [0.01, 2e-3, 2e-3, 0.0, 3e-5, 3e-5], rtol=REL)
+    # measurement noise: the angle column and the velocity column each with its own std
+    np.testing.assert_allclose(sc.noise.reshape(-1, 2).std(axis=0), [1e-4, 5e-3], rtol=0.01)
+    # the plant: independent uniform scales, and a payload in [0, max] with mean max / 2
+    p = sc.plant
+    for scale, half_width in ((p.youngs_modulus_scale, 0.1), (p.density_scale, 0.05), (p.hub_inertia_scale, 0.2)):
+        assert np.all(np.abs(scale - 1) <= half_width) and np.std(scale) == pytest.approx(half_width / np.sqrt(3), rel=REL)
+    assert abs(np.corrcoef(p.youngs_modulus_scale, p.density_scale)[0, 1]) < 0.1
+    assert p.payload_mass_kg.min() >= 0 and p.payload_mass_kg.max() <= 0.03
+    assert p.payload_mass_kg.mean() == pytest.approx(0.015, rel=REL)
+
+
+def test_pulse_and_step_follow_their_distributions():
+    """The same key draws the same start times with the pulse or the step alone."""
+    pulse = draw(dataclasses.replace(SPEC, step_max_n=0.0)).force[:, :, 0]
+    step = draw(dataclasses.replace(SPEC, impulse_max_n=0.0)).force[:, :, 0]
+    on = np.abs(pulse) > 0
+    lengths = on.sum(axis=1)
+    assert np.all(np.abs(lengths - 7) <= 1) and np.mean(lengths == 7) > 0.5  # 7 ms at 1 ms, up to the rounding of the start
+    amplitude = np.abs(pulse).max(axis=1)
+    assert amplitude.max() <= 0.4 and amplitude.mean() == pytest.approx(0.2, rel=2 * REL)
+    level = step[:, -1]
+    assert np.all(np.abs(step - level[:, None]) * (np.abs(step) > 0) == 0)  # on once, at one level
+    assert np.abs(level).max() <= 0.2 and np.abs(level).mean() == pytest.approx(0.1, rel=2 * REL)
+    pulse_start, step_start = np.argmax(on, axis=1), np.argmax(np.abs(step) > 0, axis=1)
+    for start in (pulse_start, step_start):  # uniform over the first half of the horizon (100 samples)
+        assert start.max() <= 100 and start.mean() == pytest.approx(50, rel=2 * REL)
+    assert abs(np.corrcoef(pulse_start, step_start)[0, 1]) < 0.1  # drawn apart
+
+
+def test_the_papers_scenario_is_member_zero():
+    spec = dataclasses.replace(SPEC, include_paper=True)
+    sc = jax.tree.map(np.asarray, sample_scenarios(spec, jax.random.key(0), 8, dtype=np.float64))
+    np.testing.assert_array_equal(sc.x0[0], _paper_x0(2))
+    assert not sc.force[0].any() and not sc.noise[0].any()
+    plant0 = [float(leaf[0]) for leaf in sc.plant]
+    assert plant0 == [1.0, 1.0, 1.0, 0.0]
+    assert sc.force[1:].any()
+    assert sc.noise[1:].any()
