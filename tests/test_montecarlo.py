@@ -220,7 +220,8 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     tuned.write_text(json.dumps({"controller": "dfs+fuzzy", "params": named, "config": {
         "capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03, "beam": arm_table, "n_modes": 3, "method": "zoh"}}))
     config = tmp_path / "mc.toml"
-    config.write_text("band_scenarios = 2\n[scenarios]\nhorizon_s = 0.05\n")
+    # the config's own pade_order beats the tuned run's; the --scenarios flag beats the config's
+    config.write_text("band_scenarios = 2\nn_scenarios = 5\npade_order = 4\n[scenarios]\nhorizon_s = 0.05\n")
     out = tmp_path / "o"
     # the default chunk (4096) is capped at the 3 scenarios asked for
     assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "3", "--out", str(out), "--no-progress"]) == 0
@@ -228,7 +229,7 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     assert "peak tip deflection (m): mean " in printed and ", p50 " in printed and "None" not in printed
     summary = json.loads((out / "summary.json").read_text())
     assert summary["controller"] == "dfs+fuzzy" and summary["params"] == named
-    assert summary["controller_options"] == {"capacity": 16, "delay": "pade", "pade_order": 5, "fuzzy_temperature": 0.03}
+    assert summary["controller_options"] == {"capacity": 16, "delay": "pade", "pade_order": 4, "fuzzy_temperature": 0.03}
     assert summary["beam"] == arm_table and summary["chunk"] == 3
     assert (summary["n_modes"], summary["method"]) == (3, "zoh")  # the model it was tuned on
     with np.load(out / "chunks" / "chunk_000000.npz") as data:
@@ -236,7 +237,7 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     # the statistics are those of the tuned controller, run directly with its options
     direct = MCConfig(
         controller="dfs+fuzzy", params=named, n_scenarios=3, chunk=3, band_scenarios=2, scenarios=ScenarioSpec(horizon_s=0.05),
-        capacity=16, delay="pade", pade_order=5, fuzzy_temperature=0.03, beam=BeamParams(length_m=0.6, payload_mass_kg=0.05), n_modes=3, method="zoh",
+        capacity=16, delay="pade", pade_order=4, fuzzy_temperature=0.03, beam=BeamParams(length_m=0.6, payload_mass_kg=0.05), n_modes=3, method="zoh",
     )
     assert run_montecarlo(direct, tmp_path / "direct", progress=False, figures=False)["metrics"] == summary["metrics"]
     # and the runner simulates that arm, not the paper's

@@ -132,3 +132,12 @@ def test_call_sites_keep_their_configurations(tmp_path):
     # Monte Carlo with a tuned run's options: its runner builds that same controller
     runner = montecarlo._Runner(montecarlo.MCConfig(controller="dfs+fuzzy", params=named, delay="pade", pade_order=5, fuzzy_temperature=0.03))
     np.testing.assert_array_equal(torques(runner.controller, runner.params, ys), torques(*hand, ys))
+
+
+def test_a_combined_controller_checks_both_parts():
+    controller, params = by_name("dfs+fuzzy", dt=1e-3)
+    controller.check(params)
+    with pytest.raises(ValueError, match="k1"):
+        controller.check((params[0], fuzzy_params(k1=-1.0)))
+    with pytest.raises(ValueError, match="tau_s"):
+        controller.check((DFSParams(55.0, -0.005), params[1]))

@@ -391,6 +391,7 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     config.write_text('steps = 5\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
     assert seen["beam_params"] == arm and (seen["n_modes"], seen["dt"]) == (2, 1e-3)
+    assert (seen["k"], seen["tau_s"]) == (55.0, 0.005)  # the paper's point by default
     # the loop tune and montecarlo simulate by default (RK4) is printed beside the ZOH one
     assert "2 modes, dt = 0.001 s: sampled-loop spectral radius 0.500000 (stable; sampled by RK4, the default of tune and montecarlo: 11.440000, unstable)" in capsys.readouterr().out
     # the tuned arm's model and sample time come from the config, unless the flags say otherwise

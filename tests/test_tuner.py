@@ -157,6 +157,9 @@ def test_second_train_step_does_not_retrace():
         raw, opt, info = problem.train_step(raw, opt, problem.train)
     assert len(calls) == 1
     assert np.isfinite(float(info["loss"]))
+    # the held-out scenarios are drawn apart from the training ones: no initial state in common
+    train, heldout = np.asarray(problem.train.x0), np.asarray(problem.heldout.x0)
+    assert not np.any(np.all(train[:, None, :] == heldout[None, :, :], axis=-1))
 
 
 @pytest.fixture(scope="module")
@@ -374,6 +377,11 @@ def test_resume_from_an_unreadable_checkpoint_is_refused(tmp_path):
     (tmp_path / CHECKPOINT).write_bytes(b"not a zip file")
     with pytest.raises(ValueError, match="--resume: cannot read the checkpoint"):
         tune(TuneConfig(controller="dfs", steps=1, **SMALL), tmp_path, resume=True, progress=False)
+
+
+def test_command_line_flags_beat_the_config_file():
+    config = TuneConfig.from_mapping({"n_scenarios": 5, "steps": 7, "seed": 2}, n_scenarios=3, steps=None, seed=0)
+    assert (config.n_scenarios, config.steps, config.seed) == (3, 7, 0)
 
 
 def test_numpy_scalars_are_accepted_and_stored_as_plain_numbers():
