@@ -138,8 +138,13 @@ def test_vibration_reduction_db_exact_values():
     psd_closed[17] = 4.0 / 10**3  # 30 dB at the open-loop peak bin
     psd_closed[16] = 2.0 / 10**9  # closed loop much lower at 16 Hz: must NOT be used
     psd_closed[50] = 3.0 * 10**0.5  # closed loop louder: -5 dB
+    psd_closed[14] = 1.0  # the closed loop's own peak in the band: the bin is the OPEN loop's
     db = vibration_reduction_db(freqs, psd_open, psd_closed, jnp.array([16.0, 55.0]))
     np.testing.assert_allclose(db, [30.0, -5.0], rtol=0, atol=ATOL_DB)
+    # the band's edges belong to it: |20 - 16| = 0.25 * 16
+    edge = np.full((101,), 1e-6)
+    edge[20] = 1.0
+    assert int(band_peak(freqs, edge, 16.0, rel_band=0.25)[1]) == 20
 
     f_peak, idx = band_peak(freqs, psd_open, 16.0)
     assert float(f_peak) == 17.0 and int(idx) == 17

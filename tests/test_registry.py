@@ -141,3 +141,12 @@ def test_a_combined_controller_checks_both_parts():
         controller.check((params[0], fuzzy_params(k1=-1.0)))
     with pytest.raises(ValueError, match="tau_s"):
         controller.check((DFSParams(55.0, -0.005), params[1]))
+
+
+def test_default_buffer_holds_64_samples():
+    """dfs()'s documented default capacity: 64 ms of delay at 1 ms, and not one sample more."""
+    controller, params = by_name("dfs", dt=1e-3, params={"tau_s": 0.064})
+    controller.check(params)
+    controller, params = by_name("dfs", dt=1e-3, params={"tau_s": 0.065})
+    with pytest.raises(ValueError, match="tau_s"):
+        controller.check(params)
