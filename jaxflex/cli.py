@@ -110,11 +110,22 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-# What a run leaves to resume from, and the hint printed when it is there after Ctrl-C.
-_RESUME_FROM = {
-    "tune": ("checkpoint.npz", "; --resume continues from the last checkpoint"),
-    "montecarlo": ("montecarlo.json", "; --resume continues from the chunks written"),
+_RESUME_HINT = {
+    "tune": "; --resume continues from the last checkpoint",
+    "montecarlo": "; --resume continues from the chunks written",
 }
+
+
+def _resume_marker(command: str) -> str:
+    """The file a run of ``command`` leaves to resume from (imported late: the module is
+    loaded by then)."""
+    if command == "tune":
+        from tuning.tuner import CHECKPOINT
+
+        return CHECKPOINT
+    from jaxflex.montecarlo import META
+
+    return META
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -140,10 +151,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"jaxflex {args.command}: error: out of memory ({first}){hint}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        hint = ""
-        if args.command in _RESUME_FROM:
-            marker, resume = _RESUME_FROM[args.command]
-            hint = resume if os.path.exists(os.path.join(out, marker)) else "; nothing was written to resume from: run it again without --resume"
+        hint = _RESUME_HINT.get(args.command, "")
+        if hint and not os.path.exists(os.path.join(out, _resume_marker(args.command))):
+            hint = "; nothing was written to resume from: run it again without --resume"
         print(f"jaxflex {args.command}: interrupted{hint}", file=sys.stderr)
         return 130
     finally:

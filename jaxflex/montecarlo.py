@@ -39,6 +39,8 @@ from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, perturbed_params, sample_scenarios, scenario_plant
 
 CONTROLLERS = NAMES
+META = "montecarlo.json"
+"""The file in a Monte Carlo folder that says which configuration wrote its chunks."""
 METRICS = {
     "settling_time_s": "settling time of the tip deflection (s; 2 % of its peak, around 0)",
     "peak_tip_deflection_m": "peak |tip deflection| (m)",
@@ -110,7 +112,7 @@ class MCConfig:
         ):
             raise ValueError(f"percentiles must be numbers in [0, 100]; got {self.percentiles!r}")
         if self.method not in METHODS:
-            raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
+            raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
@@ -264,7 +266,7 @@ def run_montecarlo(
       ValueError: bad configuration, or a resume into a folder made by another configuration.
     """
     out_dir = os.fspath(out_dir)
-    meta_path = os.path.join(out_dir, "montecarlo.json")
+    meta_path, summary_path, chunks_dir = (os.path.join(out_dir, name) for name in (META, "summary.json", "chunks"))
     meta = {"fingerprint": config.fingerprint(), "chunk": config.run_chunk, "config": config.fingerprint_fields()}
     # The folder is checked before any sampling or compiling.
     if os.path.exists(meta_path):
@@ -273,15 +275,15 @@ def run_montecarlo(
         _check_resume(meta_path, meta)
         # summary.json is rewritten at the end; until then the previous one would describe
         # another set of chunks.
-        if os.path.exists(os.path.join(out_dir, "summary.json")):
-            os.remove(os.path.join(out_dir, "summary.json"))
+        if os.path.exists(summary_path):
+            os.remove(summary_path)
     elif resume:
-        raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no montecarlo.json); leave out --resume to start one")
-    elif os.path.isdir(os.path.join(out_dir, "chunks")) and os.listdir(os.path.join(out_dir, "chunks")):
+        raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no {META}); leave out --resume to start one")
+    elif os.path.isdir(chunks_dir) and os.listdir(chunks_dir):
         # Chunks without the metadata that says which configuration made them: a new run
         # would take them as its own.
-        raise ValueError(f"{out_dir}/chunks holds chunk files but {out_dir} has no montecarlo.json to say which run wrote them; choose another --out")
-    os.makedirs(os.path.join(out_dir, "chunks"), exist_ok=True)
+        raise ValueError(f"{chunks_dir} holds chunk files but {out_dir} has no {META} to say which run wrote them; choose another --out")
+    os.makedirs(chunks_dir, exist_ok=True)
     runner = _Runner(config)
 
     n_chunks = int(math.ceil(config.n_scenarios / runner.chunk))
@@ -325,7 +327,7 @@ def run_montecarlo(
     if figures and progress:
         print("montecarlo: drawing figures", file=sys.stderr, flush=True)
     summary["figures"] = _figures(runner, merged, out_dir) if figures else []
-    fileio.write_json(os.path.join(out_dir, "summary.json"), summary)
+    fileio.write_json(summary_path, summary)
     return summary
 
 

@@ -105,7 +105,7 @@ class TuneConfig:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
         if self.method not in METHODS:
-            raise ValueError(f"method must be 'rk4' or 'zoh'; got {self.method!r}")
+            raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
         if not isinstance(self.scenarios, ScenarioSpec):
             raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")
         if not isinstance(self.objective, ObjectiveSpec):
