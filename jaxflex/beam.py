@@ -112,7 +112,7 @@ def check_beam_params(params: BeamParams) -> None:
         value = getattr(params, name)
         if value is None or isinstance(value, jax.core.Tracer):
             continue
-        arr = np.asarray(value, dtype=float)
+        arr = checks.real_array(f"BeamParams.{name}", value)
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"BeamParams.{name} must be finite; got {value}")
         if name in _POSITIVE_FIELDS and not np.all(arr > 0):

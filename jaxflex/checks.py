@@ -3,8 +3,8 @@
 Each returns the value as a Python ``int`` or ``float`` (so that NumPy scalars read from
 arrays or files are accepted and stored as plain numbers) and raises ``ValueError`` naming the
 option and the accepted range. Bools are refused everywhere: ``True`` is an ``int`` to Python
-but never a count or a weight to a user. Array-valued parameters are checked by
-``controllers.base.check_finite_scalar`` instead.
+but never a count or a weight to a user. ``real_array`` is the type check of array-valued
+parameters (gains, centres, the arm's constants), whose ranges their own checks add.
 """
 
 from __future__ import annotations
@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 import numbers
 from typing import Any
+
+import numpy as np
 
 SEED_RANGE = (-(2**63), 2**63)
 """Seeds are stored as 64-bit integers: ``[-2**63, 2**63)``."""
@@ -44,3 +46,20 @@ def number(name: str, value: Any, low: float = 0.0, *, strict: bool = False, uni
     ):
         raise ValueError(f"{name} must be a finite number{f' of {unit}' if unit else ''} {bound}; got {value!r}")
     return float(value)
+
+
+def real_array(name: str, value: Any, *, scalar: bool = False) -> np.ndarray:
+    """``value`` (a number or an array of them, concrete) as a NumPy array of a real dtype;
+    ``scalar`` names a number alone as accepted (the caller checks the shape).
+
+    Strings, bools, complex numbers and objects are refused by name: NumPy would turn
+    ``"0.9"`` into a number silently, and ``"a"`` into an error that names nothing.
+    """
+    accepted = f"{name} must be a real number{'' if scalar else ' or an array of real numbers'}; got {value!r}"
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as err:  # ragged sequences
+        raise ValueError(accepted) from err
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(accepted)
+    return arr

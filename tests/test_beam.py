@@ -174,6 +174,9 @@ def test_frequency_gradients_match_central_differences(field):
         (dict(hub_inertia_kg_m2=float("inf")), "hub_inertia_kg_m2 must be finite"),
         (dict(payload_mass_kg=-0.1), "payload_mass_kg must be >= 0"),
         (dict(rayleigh_alpha=0.1), "given together"),
+        (dict(length_m="0.9"), r"length_m must be a real number or an array of real numbers; got '0\.9'"),
+        (dict(damping_ratio=True), r"damping_ratio must be a real number"),
+        (dict(width_m=[0.01, [0.02]]), r"width_m must be a real number"),
     ],
 )
 def test_bad_parameters_are_rejected(kwargs, match):

@@ -192,6 +192,8 @@ def test_validation():
             with pytest.raises(ValueError, match="tau_s must be finite and > 0"):
                 ctrl.check(DFSParams(K, tau))
         ctrl.check(DFSParams(K, 0.0153))  # fractional, within the buffer
+        with pytest.raises(ValueError, match=r"k must be a real number; got '55'"):
+            ctrl.check(DFSParams("55", 0.0153))  # NumPy would read it as 55.0; jit would not
     for interpolation in ("linear", "cubic"):
         with pytest.raises(ValueError, match=r"tau_s must be in \(0, 0.016\]"):
             dfs(DT, capacity=16, interpolation=interpolation).check(DFSParams(K, 0.0161))

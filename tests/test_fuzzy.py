@@ -358,6 +358,17 @@ def test_validation():
         check(fuzzy_params()._replace(velocity_centres=jnp.array([-1.0, 0.0, 1.0])))
     with pytest.raises(ValueError, match=r"velocity_centres .*finite"):
         check(fuzzy_params()._replace(velocity_centres=jnp.array([-1.0, -0.5, 0.0, 0.5, jnp.nan])))
+    # a string is named, whether NumPy could read it as a number or not
+    with pytest.raises(ValueError, match=r"k1 must be a real number; got 'a'"):
+        fuzzy_params("a")
+    with pytest.raises(ValueError, match=r"k3 must be a real number; got '1\.0'"):
+        fuzzy_params(k3="1.0")
+    with pytest.raises(ValueError, match=r"centres must be a real number or an array of real numbers"):
+        fuzzy_params(centres=("-1", "-0.5", "0", "0.5", "1"))
+    with pytest.raises(ValueError, match=r"k2 must be a real number; got True"):
+        check(fuzzy_params()._replace(k2=True))
+    with pytest.raises(ValueError, match=r"angle_centres must be a real number or an array"):
+        check(fuzzy_params()._replace(angle_centres=("a",) * 5))
     # the public surface and memberships check the centres too (decreasing ones gave 0 silently)
     with pytest.raises(ValueError, match=r"torque_centres must have shape \(5,\).*strictly increasing"):
         fuzzy_surface(fuzzy_params()._replace(torque_centres=jnp.array([1.0, 0.5, 0.0, -0.5, -1.0])), 0.3, 0.1)

@@ -22,8 +22,9 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.typing import ArrayLike
+
+from jaxflex import checks
 
 
 class Controller(NamedTuple):
@@ -51,9 +52,9 @@ def check_finite_scalar(name: str, value: Any, *, positive: bool = False, nonneg
 
     Raises:
       ValueError: naming ``name`` and the accepted range when ``value`` is not a finite
-        scalar (and positive / non-negative where asked).
+        real scalar (and positive / non-negative where asked).
     """
-    arr = np.asarray(value)
+    arr = checks.real_array(name, value, scalar=True)
     if arr.ndim != 0:
         raise ValueError(f"{name} must be a scalar; got shape {arr.shape}")
     v = float(arr)

@@ -105,6 +105,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxflex import checks
 from jaxflex.controllers.base import Controller, check_finite_scalar, is_concrete
 
 SET_NAMES = ("NM", "NS", "ZE", "PS", "PM")
@@ -166,7 +167,14 @@ def fuzzy_params(
 
     Returns:
       The parameters; ``check`` of the controller validates their values.
+
+    Raises:
+      ValueError: naming an argument that is not a real number (or, for ``centres``, an
+        array of them).
     """
+    for name, value in (("k1", k1), ("k2", k2), ("k3", k3)):
+        checks.real_array(name, value, scalar=True)
+    checks.real_array("centres", centres)
     dtype = float if dtype is None else dtype
     c = jnp.asarray(centres, dtype=dtype)
     return FuzzyParams(
@@ -223,7 +231,7 @@ def _check_centre_array(name: str, centres: jax.typing.ArrayLike, n_sets: int) -
     (concrete values only: traced ones pass)."""
     if not is_concrete(centres):
         return
-    c = np.asarray(centres)
+    c = checks.real_array(name, centres)
     accepted = f"{name} must have shape ({n_sets},), be finite and strictly increasing"
     if c.shape != (n_sets,):
         raise ValueError(f"{accepted}; got shape {c.shape}")
