@@ -65,9 +65,12 @@ def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Seque
         psd = np.asarray(psd)
         if np.all(np.isfinite(psd)):
             ax.semilogy(freqs[keep], np.maximum(psd[keep], 1e-300), label=LABELS.get(run, run), **_STYLES.get(run, {}))
-    for f in mode_freqs_hz:
-        if f <= fmax:
-            ax.axvline(f, color="k", lw=0.6, alpha=0.4)
+        else:  # a diverged run: named in the legend, not drawn
+            ax.plot([], [], " ", label=f"{LABELS.get(run, run)} (non-finite, not drawn)")
+    shown = [f for f in mode_freqs_hz if f <= fmax]
+    for i, f in enumerate(shown):
+        label = f"model modes ({', '.join(f'{g:.1f}' for g in shown)} Hz)" if i == 0 else None
+        ax.axvline(f, color="k", lw=0.6, alpha=0.4, label=label)
     ax.set_xlabel("Frequency (Hz)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3, which="both")

@@ -251,3 +251,19 @@ def test_psd_figure_shows_every_mode_below_nyquist():
         marked = [ln.get_xdata()[0] for ln in fig.axes[0].get_lines()[1:]]
         assert marked == [f for f in modes if f <= right]
         plt.close(fig)
+
+
+def test_psd_figure_legend_names_the_modes_and_a_diverged_run():
+    """The mode lines were unlabelled, and a diverged run vanished from the figure without a
+    word; both are named in the legend now."""
+    import matplotlib.pyplot as plt
+
+    from jaxflex import plotting
+
+    freqs = np.linspace(0, 500, 513)
+    fig = plotting.psds(freqs, {"dfs": np.ones_like(freqs), "tuned": np.full_like(freqs, np.nan)}, (13.32, 36.47, 400.0), "y", "title", fmax=150.0)
+    texts = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    plt.close(fig)
+    assert "model modes (13.3, 36.5 Hz)" in texts  # only the modes on the axis (up to 150 Hz)
+    assert any(t.endswith("(non-finite, not drawn)") for t in texts)
+    assert len(texts) == 3
