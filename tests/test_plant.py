@@ -79,6 +79,35 @@ def test_zoh_matches_scipy_expm_and_python_control_c2d():
     np.testing.assert_allclose(np.asarray(d.Ed), sysd.B[:, 1:], rtol=RTOL_EXPM, atol=ATOL_EXPM * np.abs(sysd.B[:, 1:]).max())
 
 
+STIFF_ARM = BeamParams(length_m=0.5, width_m=0.025, thickness_m=0.02, youngs_modulus_pa=200e9, density_kg_m3=7850.0, hub_inertia_kg_m2=2e-3)
+
+
+@pytest.mark.parametrize(
+    "arm, n_modes, rtol",
+    [
+        (BeamParams(), 2, 2e-6),  # unbalanced: 9.5e-5
+        (BeamParams(), 6, 1e-4),  # unbalanced: 6 %
+        (STIFF_ARM, 3, 1e-3),  # modes 0.27-1.3 kHz; unbalanced: NaN (17 squarings), or unstable with more
+    ],
+)
+def test_float32_zoh_is_balanced(arm, n_modes, rtol):
+    """A float32 ZOH against scipy's expm of the same (float32) plant in float64. The modal
+    matrices are badly scaled; the balanced expm stays accurate, finite and as stable as the
+    arm (error relative to each column's largest entry)."""
+    p = make_plant(BeamParams(*(None if v is None else jnp.float32(v) for v in arm)), n_modes)
+    d = discretize(p, 1e-3, "zoh")
+    assert d.Ad.dtype == jnp.float32
+    n = p.A.shape[0]
+    block = np.zeros((n + 2, n + 2))
+    block[:n, :n] = np.asarray(p.A, float)
+    block[:n, n:] = np.concatenate([np.asarray(p.B, float), np.asarray(p.E, float)], axis=1)
+    phi = scipy.linalg.expm(block * 1e-3)
+    got = np.concatenate([np.asarray(m, float) for m in (d.Ad, d.Bd, d.Ed)], axis=1)
+    error = np.max(np.abs(got - phi[:n]) / np.abs(phi[:n]).max(axis=0))
+    assert error < rtol, error
+    assert np.max(np.abs(np.linalg.eigvals(np.asarray(d.Ad, float)))) <= 1 + 1e-6
+
+
 def test_rk4_converges_to_zoh_at_fourth_order():
     """Same held-input signal over 0.2 s: the sup-over-time RK4 error (per state, relative to that
     state's peak) falls by 2^4 per halving of dt, from the paper's 1 kHz down."""
@@ -115,7 +144,7 @@ def test_discretize_differentiable_against_fd():
     np.testing.assert_allclose(g, fd, rtol=1e-6)
 
 
-@pytest.mark.parametrize("dt, match", [(0.0, "dt must be"), (-1e-3, "dt must be"), (float("nan"), "dt must be"), (np.ones(2), "dt must be")])
+@pytest.mark.parametrize("dt, match", [(0.0, "dt must be"), (-1e-3, "dt must be"), (float("nan"), "dt must be"), (np.ones(2), "dt must be"), ("1e-3", "dt must be a real number")])
 def test_bad_dt_is_rejected(dt, match):
     with pytest.raises(ValueError, match=match):
         discretize(make_plant(), dt)
