@@ -106,11 +106,14 @@ def check_beam_params(params: BeamParams) -> None:
     """Value checks on concrete parameters (skipped for traced leaves).
 
     Raises:
-      ValueError: naming the field and its accepted range.
+      ValueError: naming the field and its accepted range, or ``params`` when it is not a
+        ``BeamParams`` (a dict of the fields, say).
     """
+    if not isinstance(params, BeamParams):
+        raise ValueError(f"params must be a BeamParams (jaxflex.beam.BeamParams(length_m=..., ...)); got {type(params).__name__} {params!r}")
     for name in _POSITIVE_FIELDS + _NONNEGATIVE_FIELDS + ("rayleigh_alpha", "rayleigh_beta"):
         value = getattr(params, name)
-        if value is None or isinstance(value, jax.core.Tracer):
+        if (value is None and name.startswith("rayleigh")) or isinstance(value, jax.core.Tracer):
             continue
         arr = checks.real_array(f"BeamParams.{name}", value)
         if not np.all(np.isfinite(arr)):

@@ -177,11 +177,17 @@ def test_frequency_gradients_match_central_differences(field):
         (dict(length_m="0.9"), r"length_m must be a real number or an array of real numbers; got '0\.9'"),
         (dict(damping_ratio=True), r"damping_ratio must be a real number"),
         (dict(width_m=[0.01, [0.02]]), r"width_m must be a real number"),
+        (dict(length_m=None), r"length_m must be a real number"),  # only the Rayleigh fields may be None
     ],
 )
 def test_bad_parameters_are_rejected(kwargs, match):
     with pytest.raises(ValueError, match=match):
         beam.modal_matrices(BeamParams(**kwargs), 2)
+
+
+def test_a_dict_of_fields_is_refused_by_name():
+    with pytest.raises(ValueError, match=r"params must be a BeamParams .*got dict"):
+        beam.natural_frequencies_hz({"length_m": 1.2}, 2)
 
 
 @pytest.mark.parametrize("n", [0, -1, 2.0, True])

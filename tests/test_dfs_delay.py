@@ -194,6 +194,8 @@ def test_validation():
         ctrl.check(DFSParams(K, 0.0153))  # fractional, within the buffer
         with pytest.raises(ValueError, match=r"k must be a real number; got '55'"):
             ctrl.check(DFSParams("55", 0.0153))  # NumPy would read it as 55.0; jit would not
+        with pytest.raises(ValueError, match=r"params must be a DFSParams \(k, tau_s\); got dict"):
+            ctrl.check({"k": K, "tau_s": 0.0153})
     for interpolation in ("linear", "cubic"):
         with pytest.raises(ValueError, match=r"tau_s must be in \(0, 0.016\]"):
             dfs(DT, capacity=16, interpolation=interpolation).check(DFSParams(K, 0.0161))

@@ -327,6 +327,8 @@ def test_gradient_finite_where_no_rule_fires(defuzz):
 
 
 def test_validation():
+    with pytest.raises(ValueError, match=r"rules must hold at least one .* triple"):
+        fuzzy(rules=[])
     with pytest.raises(ValueError, match=r"rule 1 names unknown set 'XX'.*accepted names.*NM"):
         fuzzy(rules=(("NM", "ZE", "PM"), ("XX", "ZE", "PS")))
     with pytest.raises(ValueError, match=r"rule 0 must be an \(angle, velocity, torque\) triple"):

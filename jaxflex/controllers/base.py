@@ -47,6 +47,13 @@ def is_concrete(tree: Any) -> bool:
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree))
 
 
+def check_params_type(params: Any, expected: type) -> None:
+    """Refuse, by name, parameters that are not an ``expected`` (a dict of gains, a bare tuple):
+    they would fail deep in the step with an AttributeError."""
+    if not isinstance(params, expected):
+        raise ValueError(f"params must be a {expected.__name__} ({', '.join(expected._fields)}); got {type(params).__name__} {params!r}")
+
+
 def check_finite_scalar(name: str, value: Any, *, positive: bool = False, nonnegative: bool = False) -> float:
     """Value check on a concrete scalar parameter; returns it as a float.
 

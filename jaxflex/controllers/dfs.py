@@ -41,7 +41,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from jaxflex import delay, pade
-from jaxflex.controllers.base import Controller, check_finite_scalar
+from jaxflex.controllers.base import Controller, check_finite_scalar, check_params_type
 
 _WHOLE_SAMPLE_RTOL = 1e-6  # tau / dt within this of an integer is a whole number of samples (float32 round-off)
 APPROXIMATIONS = ("buffer", "pade")
@@ -128,6 +128,7 @@ def dfs(
         return state, jnp.where(held, -params.k * (theta - theta_delayed), jnp.nan)
 
     def check(params: DFSParams) -> None:
+        check_params_type(params, DFSParams)
         check_finite_scalar("k", params.k)
         tau = check_finite_scalar("tau_s", params.tau_s, positive=True)
         if use_pade:

@@ -106,7 +106,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex import checks
-from jaxflex.controllers.base import Controller, check_finite_scalar, is_concrete
+from jaxflex.controllers.base import Controller, check_finite_scalar, check_params_type, is_concrete
 
 SET_NAMES = ("NM", "NS", "ZE", "PS", "PM")
 
@@ -209,6 +209,8 @@ def _rule_indices(rules: Sequence[Sequence[str]], set_names: Sequence[str]) -> _
         raise ValueError(f"set_names must be distinct; got {names!r}")
     if isinstance(rules, str):
         raise ValueError(f"rules must be a sequence of (angle, velocity, torque) triples; got {rules!r}")
+    if len(rules) == 0:
+        raise ValueError("rules must hold at least one (angle, velocity, torque) triple (with none the torque is always 0: the open loop)")
     position = {n: i for i, n in enumerate(names)}
     rows = []
     for r, rule in enumerate(rules):
@@ -484,8 +486,6 @@ def _surface(
     mu_vel = _membership_list(jnp.asarray(e_dot, dtype), params.velocity_centres.astype(dtype), t)  # n_sets
     c_out = params.torque_centres.astype(dtype)  # [n_sets]
     w = [_min_levels(mu_angle[i], mu_vel[j], t) for i, j in zip(idx.angle.tolist(), idx.velocity.tolist())]  # firing strengths
-    if not w:
-        return jnp.zeros((), dtype)  # no rules: nothing fires
     if defuzz == "centroid":
         s = _group_max(w, idx.torque, c_out.shape[0], t)  # n_sets clip levels
         return _centroid(s, c_out, t)
@@ -592,6 +592,7 @@ def fuzzy(
         return state, jnp.reshape(u, (1,))
 
     def check(params: FuzzyParams) -> None:
+        check_params_type(params, FuzzyParams)
         check_finite_scalar("k1", params.k1, positive=True)
         check_finite_scalar("k2", params.k2, positive=True)
         check_finite_scalar("k3", params.k3)

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import jax
 from jax.typing import ArrayLike
 
-from jaxflex.controllers.base import Controller, check_finite_scalar
+from jaxflex.controllers.base import Controller, check_finite_scalar, check_params_type
 
 
 class PDParams(NamedTuple):
@@ -28,6 +28,7 @@ def pd() -> Controller:
         return state, -(params.kp * y[:1] + params.kd * y[1:2])
 
     def check(params: PDParams) -> None:
+        check_params_type(params, PDParams)
         check_finite_scalar("kp", params.kp)
         check_finite_scalar("kd", params.kd)
 
