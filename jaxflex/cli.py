@@ -83,7 +83,7 @@ def _parser() -> argparse.ArgumentParser:
     stab.add_argument("--modes", type=_positive_int, default=None, help="number of assumed modes (default: the config's n_modes, else 2)")
     stab.add_argument("--dt", type=float, default=None, help="sample time of the sampled loop (s; default: the config's [scenarios] dt, else 0.001)")
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
-    stab.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the arm (default the paper's), its n_modes and [scenarios] dt the defaults of --modes and --dt; other keys are ignored")
+    stab.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the arm (default the paper's), its n_modes and [scenarios] dt the defaults of --modes and --dt; its other keys are checked and not used")
     stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
 
     bench = sub.add_parser("bench", help="quick benchmark of vectorised closed-loop rollouts (under two minutes); prints a table")
@@ -201,6 +201,9 @@ def _run(args: argparse.Namespace) -> int:
 
         results = reproduce(args.out, n_modes=args.modes, progress=progress, params_file=args.params)
         print(_reproduce_summary(results))
+        tuned = results.get("tuned")
+        if tuned and tuned["tuned_for"]:
+            print(f"note: {args.params} was tuned for {', '.join(tuned['tuned_for'])}; its gains ran here on the paper's arm, {results['model']['n_modes']} modes, RK4 at 1 ms (see report.md)")
         print(f"wrote {args.out}/results.json, {args.out}/report.md and figures in {args.out}/ ({time.perf_counter() - start:.1f} s)")
         return 0
     if args.command == "tune":
@@ -281,7 +284,8 @@ def _tune(args: argparse.Namespace) -> int:
     if "stability" in summary:
         st = summary["stability"]
         part = " of the DFS part alone (the fuzzy part is nonlinear)" if summary["controller"] == "dfs+fuzzy" else ""
-        print(f"sampled-loop spectral radius{part} {st['spectral_radius']:.6f} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {st['paper_spectral_radius']:.6f})")
+        verdict = "stable" if st["stable"] else "UNSTABLE: the loop grows at these gains"
+        print(f"sampled-loop spectral radius{part} {st['spectral_radius']:.8f}, {verdict} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {st['paper_spectral_radius']:.8f})")
     print(f"wrote {os.path.join(args.out, 'tuned.json')}, history.csv and figures")
     return 0
 
@@ -341,20 +345,28 @@ def _montecarlo(args: argparse.Namespace) -> int:
 
 
 def _stability(args: argparse.Namespace) -> int:
-    from jaxflex.stability_report import run
+    import dataclasses
 
     from jaxflex.beam import params_from_mapping
+    from jaxflex.montecarlo import MCConfig
+    from jaxflex.scenarios import ScenarioSpec
+    from jaxflex.stability_report import run
+    from tuning.tuner import TuneConfig
 
     values = fileio.read_toml(args.config) if args.config else {}
+    # A tune or montecarlo config serves: the keys of either are accepted, a misspelt one is
+    # refused (it silently left the paper's arm in place).
+    fileio.check_keys(values, {f.name for f in dataclasses.fields(TuneConfig)} | {f.name for f in dataclasses.fields(MCConfig)}, "config")
     arm = params_from_mapping(values.get("beam", {}))
-    scenarios = values.get("scenarios", {})
+    scenarios = ScenarioSpec.from_mapping(values.get("scenarios", {}))
     n_modes = args.modes if args.modes is not None else values.get("n_modes", 2)
-    dt = args.dt if args.dt is not None else (scenarios.get("dt", 1e-3) if isinstance(scenarios, dict) else 1e-3)
+    dt = args.dt if args.dt is not None else scenarios.dt
     result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     first = result["first_destabilising_delay_s"]
     rk4 = result["spectral_radius_rk4"]
-    print(f"k = {args.k:g}, tau = {args.tau:g} s, {n_modes} modes, dt = {dt:g} s: sampled-loop spectral radius {result['spectral_radius']:.6f} "
-          f"({'stable' if result['stable_sampled'] else 'unstable'}; sampled by RK4, the default of tune and montecarlo: {rk4:.6f}, {'stable' if rk4 < 1 else 'unstable'}), "
+    arm_name = f"the arm of {args.config}" if values.get("beam") else "the paper's arm"
+    print(f"{arm_name}, k = {args.k:g}, tau = {args.tau:g} s, {n_modes} modes, dt = {dt:g} s: sampled-loop spectral radius {result['spectral_radius']:.8f} "
+          f"({'stable' if result['stable_sampled'] else 'UNSTABLE'}; sampled by RK4, the default of tune and montecarlo: {rk4:.8f}, {'stable' if rk4 < 1 else 'UNSTABLE'}), "
           f"first destabilising delay {'none' if first is None else f'{first:g} s'}")
     print(f"wrote {os.path.join(args.out, 'stability.json')} and {os.path.join(args.out, 'stability_chart.png')}")
     return 0

@@ -1,7 +1,8 @@
 """Figures: NumPy arrays in, matplotlib figures out. The only module that imports matplotlib.
 
-Signals are time-first ``[T]``. A run flagged as diverged is not drawn as NaN: its axes say
-"diverged" and the finite part (if any) is drawn up to the first non-finite sample.
+Signals are time-first ``[T]``. A run flagged as diverged is not drawn as NaN: its legend
+says "diverged" and the finite part (if any) is drawn up to the first non-finite sample, on
+axes scaled to the runs that did not diverge (its growth would flatten them to a line).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np  # noqa: E402
 from jaxflex import fileio  # noqa: E402
 
 _STYLES = {"open_loop": dict(color="0.45", ls="--", lw=1.0), "dfs": dict(color="C0", lw=1.2), "fuzzy": dict(color="C3", lw=1.2)}
+_OTHER_STYLE = dict(color="C2", lw=1.4, ls="-.")  # a run beside the paper's (a tuned one): never C0/C3
 LABELS = {"open_loop": "Open loop", "dfs": "DFS", "fuzzy": "PD-type fuzzy", "dfs+fuzzy": "DFS + fuzzy"}
 
 
@@ -39,11 +41,18 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
     """
     fig, axes = plt.subplots(len(signals), 1, figsize=(7.5, 2.6 * len(signals)), sharex=True, squeeze=False)
     for ax, (name, ylabel) in zip(axes[:, 0], signals):
+        settled = []  # the values of the runs that did not diverge
         for run, sig in runs.items():
             values = np.asarray(sig[name])
             n = _finite_prefix(values)
             label = LABELS.get(run, run) + (" (diverged)" if diverged.get(run, False) else "")
-            ax.plot(t[:n], values[:n], label=label, **_STYLES.get(run, {}))
+            ax.plot(t[:n], values[:n], label=label, **_STYLES.get(run, _OTHER_STYLE))
+            if not diverged.get(run, False):
+                settled.append(values[:n])
+        if settled and len(settled) < len(runs) and any(v.size for v in settled):
+            lo, hi = min(np.min(v) for v in settled if v.size), max(np.max(v) for v in settled if v.size)
+            pad = 0.1 * (hi - lo) or 1e-12
+            ax.set_ylim(lo - pad, hi + pad)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc="upper right", fontsize=8)

@@ -178,13 +178,8 @@ def _report_md(results: dict[str, Any]) -> str:
             f"## Tuned gains ({tuned['controller']}) beside the paper's, on the paper scenario",
             "",
         ]
-        other_arm = {k: v for k, v in tuned["beam"].items() if v != getattr(beam.BeamParams(), k)}
-        if other_arm:
-            lines += [
-                f"These gains were tuned for another arm ({', '.join(f'{k} = {v:g}' for k, v in other_arm.items())}); "
-                "they are shown here on the paper's arm.",
-                "",
-            ]
+        if tuned["tuned_for"]:
+            lines += [f"These gains were tuned for {', '.join(tuned['tuned_for'])}; they are shown here on the paper's arm, model and sampling.", ""]
         lines += [
             "| | parameters | q1 settling (s) | tip range (m) | tip ISE (m^2 s) |",
             "|---|---|---|---|---|",
@@ -245,6 +240,21 @@ class Tuned(NamedTuple):
         except ValueError as err:
             raise ValueError(err if same_dt(self.dt, dt) else f"tuned at dt = {self.dt:g} s, run at dt = {dt:g} s: {err}") from None
         return controller, params
+
+    def differences(self, n_modes: int, dt: float, method: str) -> list[str]:
+        """How the model these gains were tuned on differs from the paper's arm with
+        ``n_modes`` modes sampled by ``method`` every ``dt`` s: one phrase per difference
+        (empty when they agree)."""
+        paper = beam.BeamParams()
+        arm = [f"{k} = {v:g}" for k, v in self.beam._asdict().items() if v != getattr(paper, k)]
+        out = [f"another arm ({', '.join(arm)})"] if arm else []
+        if self.n_modes != n_modes:
+            out.append(f"{self.n_modes} modes (here {n_modes})")
+        if not same_dt(self.dt, dt):
+            out.append(f"dt = {self.dt:g} s (here {dt:g} s)")
+        if self.method != method:
+            out.append(f"method = '{self.method}' (here '{method}')")
+        return out
 
 
 def load_tuned(path: str | os.PathLike) -> Tuned:
@@ -347,7 +357,14 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     if tuned is not None:
         say(f"simulating tuned {tuned.name}")
         ttraj = jax.block_until_ready(simulate(plant, tuned_controller, tuned_params, scenario))
-        tuned_results = {"controller": tuned.name, "file": os.fspath(params_file), "params": tuned.named, "beam": tuned.beam._asdict(), "run": _run_metrics(ttraj, DT)}
+        tuned_results = {
+            "controller": tuned.name,
+            "file": os.fspath(params_file),
+            "params": tuned.named,
+            "beam": tuned.beam._asdict(),
+            "tuned_for": tuned.differences(n_modes, DT, "rk4"),
+            "run": _run_metrics(ttraj, DT),
+        }
 
     say("estimating PSDs")
     mode_freqs = freqs_model[: min(n_modes, 2)]

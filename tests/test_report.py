@@ -266,10 +266,13 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     (a linear delay read at a whole number of samples is the nearest read), the table and the
     figure are written, and gains tuned for another arm say so."""
     tuned = tmp_path / "tuned.json"
-    tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 55.0, "tau_s": 0.005}, "config": {"beam": {"length_m": 0.6, "rayleigh_alpha": None}}}))
+    config = {"beam": {"length_m": 0.6, "rayleigh_alpha": None}, "n_modes": 3, "method": "zoh", "scenarios": {"dt": 5e-4}}
+    tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 55.0, "tau_s": 0.005}, "config": config}))
     out = tmp_path / "o"
     assert cli.main(["reproduce", "--out", str(out), "--params", str(tuned)]) == 0
-    capsys.readouterr()
+    tuned_for = "another arm (length_m = 0.6), 3 modes (here 2), dt = 0.0005 s (here 0.001 s), method = 'zoh' (here 'rk4')"
+    # said on the console too, not only in one sentence of report.md
+    assert f"note: {tuned} was tuned for {tuned_for}; its gains ran here on the paper's arm, 2 modes, RK4 at 1 ms" in capsys.readouterr().out
     res = json.loads((out / "results.json").read_text())
     ours, paper = res["tuned"]["run"], res["runs"]["dfs"]
     for signal in ("q1", "tip_deflection_m"):
@@ -280,7 +283,7 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     report = (out / "report.md").read_text()
     assert "## Tuned gains (dfs) beside the paper's, on the paper scenario" in report
     assert re.search(rf"Command: `jaxflex reproduce --modes 2( --x64)? --params {re.escape(str(tuned))}`", report)  # the tests run in float64
-    assert "These gains were tuned for another arm (length_m = 0.6); they are shown here on the paper's arm." in report
+    assert f"These gains were tuned for {tuned_for}; they are shown here on the paper's arm, model and sampling." in report
     assert (out / "fig_tuned_response.png").read_bytes()[:4] == b"\x89PNG"
 
 
@@ -291,3 +294,24 @@ def test_one_mode_report_says_which_modes_it_compared(tmp_path):
     text = (tmp_path / "report.md").read_text()
     assert "at both modes" not in text
     assert "than the fuzzy controller at mode 1 (the only mode of this 1-mode model; the paper also compares mode 2)" in text
+
+
+def test_response_figure_tells_runs_apart_and_scales_to_the_settled_ones():
+    """The tuned run took matplotlib's first colour, DFS's own, so the two curves could not be
+    told apart; and a diverged run (1e35 by its end) flattened every other curve to a line."""
+    import matplotlib.pyplot as plt
+
+    from jaxflex import plotting
+
+    t = np.linspace(0.0, 1.0, 101)
+    decay = 1e-3 * np.exp(-5 * t) * np.cos(60 * t)
+    runs = {"dfs": {"q1": decay}, "tuned dfs": {"q1": 0.5 * decay}, "open_loop": {"q1": 1e35 * t**40}}
+    fig = plotting.responses(t, runs, [("q1", "q1 (m)")], {"open_loop": True}, "title")
+    ax = fig.axes[0]
+    colours = [line.get_color() for line in ax.get_lines()]
+    lo, hi = ax.get_ylim()
+    labels = [text.get_text() for text in ax.get_legend().get_texts()]
+    plt.close(fig)
+    assert len(set(colours)) == 3
+    assert -2e-3 < lo < -5e-4 and 1e-3 <= hi < 2e-3  # the settled runs' range, padded
+    assert "Open loop (diverged)" in labels

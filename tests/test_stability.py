@@ -393,7 +393,7 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     assert seen["beam_params"] == arm and (seen["n_modes"], seen["dt"]) == (2, 1e-3)
     assert (seen["k"], seen["tau_s"]) == (55.0, 0.005)  # the paper's point by default
     # the loop tune and montecarlo simulate by default (RK4) is printed beside the ZOH one
-    assert "2 modes, dt = 0.001 s: sampled-loop spectral radius 0.500000 (stable; sampled by RK4, the default of tune and montecarlo: 11.440000, unstable)" in capsys.readouterr().out
+    assert f"the arm of {config}, k = 55, tau = 0.005 s, 2 modes, dt = 0.001 s: sampled-loop spectral radius 0.50000000 (stable; sampled by RK4, the default of tune and montecarlo: 11.44000000, UNSTABLE)" in capsys.readouterr().out
     # the tuned arm's model and sample time come from the config, unless the flags say otherwise
     config.write_text('n_modes = 3\n[scenarios]\ndt = 5e-4\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
@@ -402,6 +402,16 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     assert (seen["n_modes"], seen["dt"]) == (2, 0.002)
     config.write_text("[beam]\nlength = 0.6\n")
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
+    # a misspelt key or table is refused, not read as "use the paper's arm" (it was, silently)
+    for text, name in (("[Beam]\nlength_m = 0.6\n", "'Beam'"), ("n_mode = 3\n", "'n_mode'"), ("[scenarios]\ndT = 0.002\n", "'dT'")):
+        config.write_text(text)
+        capsys.readouterr()
+        assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
+        assert name in capsys.readouterr().err
+    # a montecarlo config serves too, and without [beam] the paper's arm is named
+    config.write_text('chunk = 8\npercentiles = [5, 95]\n')
+    assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
+    assert seen["beam_params"] == BeamParams() and "the paper's arm, k = 55" in capsys.readouterr().out
 
 
 def test_huge_gain_is_refused_by_name_not_by_memory():

@@ -325,7 +325,10 @@ def test_cli_tune_with_toml_config(tmp_path, capsys):
     saved = json.loads((tmp_path / "o" / "tuned.json").read_text())
     assert saved["config"]["objective"]["cvar_level"] == 0.8 and saved["config"]["scenarios"]["horizon_s"] == 0.4
     assert saved["config"]["n_heldout"] == 12 and saved["config"]["n_scenarios"] == 24 and saved["steps_run"] == 4
-    assert f"updates 4 of 4; the tuned gains are the point after {saved['best_step']} updates" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"updates 4 of 4; the tuned gains are the point after {saved['best_step']} updates" in out
+    st = saved["stability"]  # the verdict is printed, with digits enough to see it below 1
+    assert f"sampled-loop spectral radius {st['spectral_radius']:.8f}, {'stable' if st['stable'] else 'UNSTABLE'} (decay rate" in out
     for name in saved["figures"]:
         assert (tmp_path / "o" / name).read_bytes()[:4] == b"\x89PNG"
     bad = tmp_path / "bad.toml"
