@@ -241,13 +241,12 @@ class Tuned(NamedTuple):
             raise ValueError(err if same_dt(self.dt, dt) else f"tuned at dt = {self.dt:g} s, run at dt = {dt:g} s: {err}") from None
         return controller, params
 
-    def differences(self, n_modes: int, dt: float, method: str) -> list[str]:
-        """How the model these gains were tuned on differs from the paper's arm with
-        ``n_modes`` modes sampled by ``method`` every ``dt`` s: one phrase per difference
-        (empty when they agree)."""
-        paper = beam.BeamParams()
-        arm = [f"{k} = {v:g}" for k, v in self.beam._asdict().items() if v != getattr(paper, k)]
-        out = [f"another arm ({', '.join(arm)})"] if arm else []
+    def differences(self, arm: beam.BeamParams, n_modes: int, dt: float, method: str) -> list[str]:
+        """How the model these gains were tuned on differs from ``arm`` with ``n_modes`` modes
+        sampled by ``method`` every ``dt`` s: one phrase per difference (empty when they
+        agree), e.g. "another arm (length_m = 1.2)" for the tuned arm's own values."""
+        other = [f"{k} = {v:g}" for k, v in self.beam._asdict().items() if v != getattr(arm, k)]
+        out = [f"another arm ({', '.join(other)})"] if other else []
         if self.n_modes != n_modes:
             out.append(f"{self.n_modes} modes (here {n_modes})")
         if not same_dt(self.dt, dt):
@@ -362,7 +361,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
             "file": os.fspath(params_file),
             "params": tuned.named,
             "beam": tuned.beam._asdict(),
-            "tuned_for": tuned.differences(n_modes, DT, "rk4"),
+            "tuned_for": tuned.differences(beam.BeamParams(), n_modes, DT, "rk4"),
             "run": _run_metrics(ttraj, DT),
         }
 

@@ -225,8 +225,9 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     out = tmp_path / "o"
     # the default chunk (4096) is capped at the 3 scenarios asked for
     assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "3", "--out", str(out), "--no-progress"]) == 0
-    printed = capsys.readouterr().out
+    printed, err = capsys.readouterr()
     assert "peak tip deflection (m): mean " in printed and ", p50 " in printed and "None" not in printed
+    assert "note:" not in err  # the model it was tuned on is the one that runs
     summary = json.loads((out / "summary.json").read_text())
     assert summary["controller"] == "dfs+fuzzy" and summary["params"] == named
     assert summary["controller_options"] == {"capacity": 16, "delay": "pade", "pade_order": 4, "fuzzy_temperature": 0.03}
@@ -263,6 +264,10 @@ def test_params_tuned_at_another_dt_run_at_that_dt(tmp_path, capsys):
     config.write_text("[scenarios]\nhorizon_s = 0.1\ndt = 0.001\n")
     assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "2", "--out", str(tmp_path / "p"), "--no-progress"]) == 2
     assert "tau_s must be in (0, 0.032] s" in capsys.readouterr().err
+    # one that fits runs, and says that the gains were tuned at another dt
+    config.write_text("band_scenarios = 2\n[scenarios]\nhorizon_s = 0.1\ndt = 0.004\n")
+    assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "2", "--out", str(tmp_path / "q"), "--no-progress"]) == 0
+    assert f"note: {tuned} was tuned for dt = 0.002 s (here 0.004 s); --config sets what runs here" in capsys.readouterr().err
     assert cli.main(["reproduce", "--params", str(tuned), "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err
     assert "cannot run on the paper's scenario (dt = 0.001 s): tuned at dt = 0.002 s, run at dt = 0.001 s: tau_s must be in (0, 0.032] s" in err

@@ -137,7 +137,7 @@ def dfs(
         if steps > capacity * (1 + _WHOLE_SAMPLE_RTOL):
             raise ValueError(
                 f"tau_s must be in (0, {capacity * dt:g}] s (the delay buffer holds {capacity} samples of {dt:g} s); "
-                f"got {tau:g} s. Pass a larger capacity to dfs()."
+                f"got {tau:g} s. Pass a larger capacity to dfs() (the capacity key of a tune or montecarlo config)."
             )
         if interpolation == "nearest" and abs(steps - np.round(steps)) > _WHOLE_SAMPLE_RTOL * max(1.0, steps):
             raise ValueError(
