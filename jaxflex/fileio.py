@@ -3,11 +3,13 @@ the previous file untouched."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import shutil
 import tempfile
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterable, Iterator, Mapping
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
@@ -29,6 +31,29 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+@contextlib.contextmanager
+def replace_outputs(folder: str | os.PathLike, owned: Iterable[str], last: str | None = None) -> Iterator[str]:
+    """A staging folder for a run's files: what is written there replaces ``folder``'s files
+    together when the block ends, ``last`` (say results.json) after the others; the files
+    named in ``owned`` that this run did not write are removed (a figure of an earlier run
+    with other options). An exception (Ctrl-C included) leaves ``folder`` as it was.
+    """
+    folder = os.fspath(folder)
+    os.makedirs(folder, exist_ok=True)
+    stage = tempfile.mkdtemp(prefix=".tmp-", dir=folder)
+    try:
+        yield stage
+        written = sorted(os.listdir(stage), key=lambda name: name == last)
+        for name in set(owned) - set(written):
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(folder, name))
+        for name in written:
+            os.chmod(os.path.join(stage, name), _mode_for(os.path.join(folder, name)))
+            os.replace(os.path.join(stage, name), os.path.join(folder, name))
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def _mode_for(path: str) -> int:

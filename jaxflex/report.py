@@ -4,7 +4,8 @@
 torque held over each sample): the open loop, DFS (k = 55, tau = 5 ms) and the PD-type fuzzy
 controller (k1 = 1.02, k2 = 0.30, k3 = 1.0, Mamdani centroid). It writes the paper's figures,
 ``report.md`` with every number the paper reports beside jaxflex's, and ``results.json``.
-Every file is written atomically; ``results.json`` last.
+The files replace the folder's together at the end (``results.json`` last), so an
+interrupted run leaves the folder as it was.
 """
 
 from __future__ import annotations
@@ -173,7 +174,7 @@ def _report_md(results: dict[str, Any]) -> str:
         base = "dfs" if tuned["controller"] == "dfs" else "fuzzy"
         paper_gains = results["controllers"][base]
         lines += [
-            f"- `fig_tuned_response.png`: q1 and tip deflection, tuned {tuned['controller']} beside the paper's gains",
+            f"- `{TUNED_FIGURE}`: q1 and tip deflection, tuned {tuned['controller']} beside the paper's gains",
             "",
             f"## Tuned gains ({tuned['controller']}) beside the paper's, on the paper scenario",
             "",
@@ -192,6 +193,7 @@ def _report_md(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+TUNED_FIGURE = "fig_tuned_response.png"  # with --params only
 FIGURES = {
     "fig4_fuzzy_surface.png": "control surface of the fuzzy controller over the normalised (angle, velocity) square (paper Fig. 4)",
     "fig5_dfs_response.png": "q1 and tip deflection, DFS against open loop (paper Fig. 5)",
@@ -413,29 +415,32 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     }
 
     say("drawing figures")
-    t = np.asarray(trajectories["open_loop"].t)
-    div = {name: r["diverged"] for name, r in runs.items()}
-    sig = {name: {"q1": np.asarray(tr.x[:, 1]), "tip": np.asarray(tr.z[:, 1])} for name, tr in trajectories.items()}
-    panels = [("q1", "q1 (m)"), ("tip", "Tip deflection (m)")]
-    for run, resp, psdfig in (("dfs", "fig5_dfs_response.png", "fig6_dfs_psd.png"), ("fuzzy", "fig7_fuzzy_response.png", "fig8_fuzzy_psd.png")):
-        label = plotting.LABELS[run]
-        pair = {"open_loop": sig["open_loop"], run: sig[run]}
-        plotting.save(plotting.responses(t, pair, panels, div, f"Modal displacement and tip deflection with {label}"), os.path.join(out_dir, resp))
-        curves = {"open_loop": psd_curves["open_loop"], run: psd_curves[run]}
-        plotting.save(plotting.psds(freqs_psd, curves, mode_freqs, "PSD of tip deflection (m^2/Hz)", f"PSD with {label} ({next(iter(ESTIMATORS))})"), os.path.join(out_dir, psdfig))
-    paper_db = {run: PAPER[run]["reduction_db"] for run in ("dfs", "fuzzy")}
-    plotting.save(plotting.reduction_bars(by_estimator, paper_db), os.path.join(out_dir, "fig9_reduction.png"))
-    grid = jnp.linspace(-1.0, 1.0, 41, dtype=dtype)
-    fparams = fuzzy_params(1.02, 0.30, 1.0, dtype=dtype)
-    surf = jax.vmap(lambda e: jax.vmap(lambda v: fuzzy_surface(fparams, e, v))(grid))(grid)
-    plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf)), os.path.join(out_dir, "fig4_fuzzy_surface.png"))
+    # Written together at the end: Ctrl-C leaves the folder as it was, and a figure of an
+    # earlier run with other options (fig_tuned_response.png) does not survive beside these.
+    with fileio.replace_outputs(out_dir, [*FIGURES, TUNED_FIGURE, "report.md", "results.json"], last="results.json") as stage:
+        t = np.asarray(trajectories["open_loop"].t)
+        div = {name: r["diverged"] for name, r in runs.items()}
+        sig = {name: {"q1": np.asarray(tr.x[:, 1]), "tip": np.asarray(tr.z[:, 1])} for name, tr in trajectories.items()}
+        panels = [("q1", "q1 (m)"), ("tip", "Tip deflection (m)")]
+        for run, resp, psdfig in (("dfs", "fig5_dfs_response.png", "fig6_dfs_psd.png"), ("fuzzy", "fig7_fuzzy_response.png", "fig8_fuzzy_psd.png")):
+            label = plotting.LABELS[run]
+            pair = {"open_loop": sig["open_loop"], run: sig[run]}
+            plotting.save(plotting.responses(t, pair, panels, div, f"Modal displacement and tip deflection with {label}"), os.path.join(stage, resp))
+            curves = {"open_loop": psd_curves["open_loop"], run: psd_curves[run]}
+            plotting.save(plotting.psds(freqs_psd, curves, mode_freqs, "PSD of tip deflection (m^2/Hz)", f"PSD with {label} ({next(iter(ESTIMATORS))})"), os.path.join(stage, psdfig))
+        paper_db = {run: PAPER[run]["reduction_db"] for run in ("dfs", "fuzzy")}
+        plotting.save(plotting.reduction_bars(by_estimator, paper_db), os.path.join(stage, "fig9_reduction.png"))
+        grid = jnp.linspace(-1.0, 1.0, 41, dtype=dtype)
+        fparams = fuzzy_params(1.02, 0.30, 1.0, dtype=dtype)
+        surf = jax.vmap(lambda e: jax.vmap(lambda v: fuzzy_surface(fparams, e, v))(grid))(grid)
+        plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf)), os.path.join(stage, "fig4_fuzzy_surface.png"))
 
-    if tuned is not None:
-        base = "dfs" if tuned.name == "dfs" else "fuzzy"
-        pair = {"open_loop": sig["open_loop"], base: sig[base], f"tuned {tuned.name}": {"q1": np.asarray(ttraj.x[:, 1]), "tip": np.asarray(ttraj.z[:, 1])}}
-        div[f"tuned {tuned.name}"] = tuned_results["run"]["diverged"]
-        plotting.save(plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned.name} ({os.path.basename(str(params_file))})"), os.path.join(out_dir, "fig_tuned_response.png"))
+        if tuned is not None:
+            base = "dfs" if tuned.name == "dfs" else "fuzzy"
+            pair = {"open_loop": sig["open_loop"], base: sig[base], f"tuned {tuned.name}": {"q1": np.asarray(ttraj.x[:, 1]), "tip": np.asarray(ttraj.z[:, 1])}}
+            div[f"tuned {tuned.name}"] = tuned_results["run"]["diverged"]
+            plotting.save(plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned.name} ({os.path.basename(str(params_file))})"), os.path.join(stage, TUNED_FIGURE))
 
-    fileio.write_text(os.path.join(out_dir, "report.md"), _report_md(results))
-    fileio.write_json(os.path.join(out_dir, "results.json"), results)
+        fileio.write_text(os.path.join(stage, "report.md"), _report_md(results))
+        fileio.write_json(os.path.join(stage, "results.json"), results)
     return results

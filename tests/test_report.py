@@ -287,9 +287,29 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     assert (out / "fig_tuned_response.png").read_bytes()[:4] == b"\x89PNG"
 
 
-def test_one_mode_report_says_which_modes_it_compared(tmp_path):
-    """With one mode only mode 1 is compared; the report once said 'at both modes'."""
+def test_one_mode_report_says_which_modes_it_compared(tmp_path, monkeypatch):
+    """With one mode only mode 1 is compared; the report once said 'at both modes'. The
+    folder's files are replaced together: an interrupted run leaves it as it was, and a
+    finished one removes the tuned figure of an earlier run with --params."""
+    from jaxflex import plotting
+
+    (tmp_path / "fig_tuned_response.png").write_bytes(b"stale")
+    (tmp_path / "report.md").write_text("earlier run")
+    (tmp_path / "notes.txt").write_text("the user's")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(plotting, "surface", interrupted)  # drawn after four other figures
+        with pytest.raises(KeyboardInterrupt):
+            reproduce(tmp_path, n_modes=1)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
     results = reproduce(tmp_path, n_modes=1)
+    names = {p.name for p in tmp_path.iterdir()}
+    assert "fig_tuned_response.png" not in names and "notes.txt" in names
+    assert names == {"notes.txt", "report.md", "results.json", *FIGURES}
     assert len(results["vibration_reduction_db"]["dfs"]) == 1
     text = (tmp_path / "report.md").read_text()
     assert "at both modes" not in text
