@@ -257,6 +257,24 @@ def _reproduce_summary(results: dict) -> str:
     )
 
 
+def _model_line(arm, n_modes: int, dt: float) -> str:
+    """The model a command is about to run, so that a unit slip in ``[beam]`` shows before
+    the run: its flexible frequencies, the sample time, and the modes above Nyquist."""
+    import numpy as np
+
+    from jaxflex.beam import natural_frequencies_hz
+    from jaxflex.plant import check_dt
+
+    check_dt(dt)
+    freqs = np.asarray(natural_frequencies_hz(arm, n_modes), float)
+    nyquist = 0.5 / dt
+    line = f"model: {n_modes} mode(s) at {', '.join(f'{f:.4g}' for f in freqs)} Hz, sampled every {dt:g} s (Nyquist {nyquist:.4g} Hz)"
+    above = freqs[freqs > nyquist]
+    if above.size:
+        line += f"; {above.size} mode(s) above Nyquist alias in what the controller measures"
+    return line
+
+
 def _tune(args: argparse.Namespace) -> int:
     from tuning.run import run_tune
     from tuning.tuner import TuneConfig
@@ -271,6 +289,7 @@ def _tune(args: argparse.Namespace) -> int:
         seed=args.seed,
         learning_rate=args.lr,
     )
+    print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
     summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress)
     obj = summary["objective"]
     def gains(named: dict) -> str:  # 6 digits: float32 runs store 55 as 55.00000762939453
@@ -338,6 +357,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     config = MCConfig(**values)
     if tuned is not None and (differences := tuned.differences(plain_params(config.beam), config.n_modes, config.scenarios.dt, config.method)):
         print(f"note: {args.params} was tuned for {', '.join(differences)}; --config sets what runs here", file=sys.stderr)
+    print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
     summary = run_montecarlo(config, args.out, resume=args.resume, progress=not args.no_progress)
     tip = summary["metrics"]["peak_tip_deflection_m"]
     spread = ", ".join(f"p{p:g} {format_value(tip[f'p{p:g}'], '.4g')}" for p in summary["percentiles"])
@@ -364,6 +384,7 @@ def _stability(args: argparse.Namespace) -> int:
     scenarios = ScenarioSpec.from_mapping(values.get("scenarios", {}))
     n_modes = args.modes if args.modes is not None else values.get("n_modes", 2)
     dt = args.dt if args.dt is not None else scenarios.dt
+    print(_model_line(arm, n_modes, dt), file=sys.stderr)
     result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     first = result["first_destabilising_delay_s"]
     rk4 = result["spectral_radius_rk4"]

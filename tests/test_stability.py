@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
-from jaxflex import plotting, stability_report
+from jaxflex import beam, plotting, stability_report
 from jaxflex.analysis import stability as st
 from jaxflex.controllers import DFSParams, dfs
 from jaxflex.plant import discretize, make_plant
@@ -400,6 +400,17 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     assert (seen["n_modes"], seen["dt"]) == (3, 5e-4)
     assert cli.main(["stability", "--config", str(config), "--modes", "2", "--dt", "0.002", "--out", str(tmp_path / "o")]) == 0
     assert (seen["n_modes"], seen["dt"]) == (2, 0.002)
+    # the model is named before the run (a unit slip in [beam] shows there), with the modes above Nyquist
+    freqs = np.asarray(beam.natural_frequencies_hz(arm, 2))
+    capsys.readouterr()
+    assert cli.main(["stability", "--config", str(config), "--modes", "2", "--dt", "0.02", "--out", str(tmp_path / "o")]) == 0
+    assert (
+        f"model: 2 mode(s) at {freqs[0]:.4g}, {freqs[1]:.4g} Hz, sampled every 0.02 s (Nyquist 25 Hz); 1 mode(s) above Nyquist alias in what the controller measures"
+        in capsys.readouterr().err
+    )
+    assert 13 < freqs[0] < 25 < freqs[1]
+    assert cli.main(["stability", "--config", str(config), "--dt", "0", "--out", str(tmp_path / "o")]) == 2
+    assert "dt must be a finite scalar > 0" in capsys.readouterr().err
     config.write_text("[beam]\nlength = 0.6\n")
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
     # a misspelt key or table is refused, not read as "use the paper's arm" (it was, silently)
