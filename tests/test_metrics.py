@@ -179,3 +179,21 @@ def test_vmap_and_jit_equal_loop():
         for got, want in zip(batched, single):
             np.testing.assert_allclose(got[b], want, rtol=RTOL_SUM)
     np.testing.assert_array_equal(jax.vmap(diverged)(batch.at[2, 5].set(jnp.nan)), [False, False, True, False])
+
+
+@pytest.mark.parametrize(
+    "s, dt, kwargs, expected",
+    [
+        # the final value is the mean of the last round(0.2 * 10) = 2 samples, 8.5: the band of
+        # 0.5 * 8.5 holds 5..9, and sample 4 (4.5 off) is the last outside
+        (np.arange(10.0), 1.0, dict(band=0.5, final_fraction=0.2), 5.0),
+        # round(0.1 * 15) = 2 samples (not 1): s_f = 0.5, and the last sample is 0.5 off, as
+        # far as any (with one sample, s_f = 1 and the run would settle at 14 s)
+        (np.concatenate([np.zeros(14), [1.0]]), 1.0, dict(final_fraction=0.1), math.inf),
+        # the last sample itself outside the band: not settled
+        (np.concatenate([[100.0], np.zeros(94), [0.0, 0.0, -5.0, 0.0, 5.0]]), 1e-3, dict(final_fraction=0.03), math.inf),
+    ],
+)
+def test_settling_time_final_window_and_last_sample(s, dt, kwargs, expected):
+    assert float(settling_time(s, dt, **kwargs)) == expected
+    assert _settling_reference(s, dt, **kwargs) == expected

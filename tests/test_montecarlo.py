@@ -315,3 +315,18 @@ def test_a_run_out_of_memory_is_named_and_leaves_no_run_behind(tmp_path, capsys,
     assert not (tmp_path / "kept" / "montecarlo.json").exists()
     monkeypatch.undo()
     assert run_montecarlo(config, tmp_path / "kept", progress=False, figures=False)["n_scenarios"] == 2  # no --resume needed
+
+
+def test_statistics_leave_out_diverged_and_nonfinite_runs():
+    """summary.json's statistics are over the runs that did not diverge; a settling time of
+    +inf (not settled by the end) is counted apart, not averaged."""
+    config = MCConfig(n_scenarios=3, percentiles=(50.0,))
+    columns = {name: np.asarray([1.0, 5.0, 3.0]) for name in montecarlo.metric_names(config.n_modes)}
+    columns["diverged"] = np.asarray([False, True, False])
+    columns["settling_time_s"] = np.asarray([0.5, 0.2, np.inf])
+    summary = montecarlo.summarize(config, columns)
+    assert summary["diverged_fraction"] == pytest.approx(1 / 3)
+    tip = summary["metrics"]["tip_ise"]
+    assert (tip["count"], tip["nonfinite"], tip["mean"], tip["max"], tip["p50"]) == (2, 0, 2.0, 3.0, 2.0)
+    settling = summary["metrics"]["settling_time_s"]
+    assert (settling["count"], settling["nonfinite"], settling["mean"]) == (1, 1, 0.5)

@@ -143,6 +143,24 @@ def test_a_combined_controller_checks_both_parts():
         controller.check((DFSParams(55.0, -0.005), params[1]))
 
 
+def test_capacity_reaches_the_buffer():
+    """by_name's capacity is the delay buffer's: 16 samples hold 16 ms at 1 ms, not 17."""
+    controller, params = by_name("dfs", dt=1e-3, params={"tau_s": 0.016}, capacity=16)
+    controller.check(params)
+    with pytest.raises(ValueError, match=r"the delay buffer holds 16 samples"):
+        controller.check(DFSParams(55.0, 0.017))
+
+
+def test_pd_reads_the_angle_and_the_velocity():
+    """u = -(kp theta + kd theta_dot), each gain on its own measurement (and the documented
+    defaults kp = 1, kd = 0.1)."""
+    from jaxflex.controllers import PDParams, pd
+
+    u = pd().step(PDParams(2.0, 0.5), (), jnp.asarray([0.1, 3.0]))[1]
+    np.testing.assert_allclose(np.asarray(u), [-(2.0 * 0.1 + 0.5 * 3.0)], rtol=1e-12)
+    assert PDParams() == (1.0, 0.1)
+
+
 def test_default_buffer_holds_64_samples():
     """dfs()'s documented default capacity: 64 ms of delay at 1 ms, and not one sample more."""
     controller, params = by_name("dfs", dt=1e-3, params={"tau_s": 0.064})

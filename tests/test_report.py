@@ -72,6 +72,71 @@ def test_samples_are_the_trajectory_values(reproduced):
     np.testing.assert_allclose(res["runs"]["dfs"]["control_effort"], np.sum(u**2) * 1e-3, rtol=1e-10)
 
 
+def test_reported_numbers_against_independent_computations(reproduced):
+    """Every dB figure (tip deflection under each estimator, q1 under the default), the
+    settling times, the Rayleigh coefficients and the report's table cells, recomputed
+    from independent rollouts with scipy's Welch, the metrics' plain-Python reading and
+    the closed-form Rayleigh fit."""
+    import scipy.signal
+
+    import jaxflex as jf
+    from jaxflex.controllers import by_name
+    from jaxflex.report import ESTIMATORS
+    from tests.test_metrics import _settling_reference
+
+    out, res = reproduced
+    arm = jf.BeamParams()
+    plant = jf.discretize(jf.make_plant(arm, 2), 1e-3, "rk4")
+    scenario = jf.paper_scenario(plant)
+    traj = {name: jf.rollout(plant, *by_name(name, dt=1e-3), scenario) for name in ("open_loop", "dfs", "fuzzy")}
+    modes = np.asarray(jf.beam.natural_frequencies_hz(arm, 2))
+
+    def reduction(signal: str, settings) -> dict[str, list[float]]:
+        pick = (lambda tr: tr.z[:, 1]) if signal == "tip" else (lambda tr: tr.x[:, 1])
+        spectra = {
+            name: scipy.signal.welch(np.asarray(pick(tr)), fs=1e3, window=settings.window, nperseg=settings.nperseg, noverlap=settings.noverlap, detrend=settings.detrend)
+            for name, tr in traj.items()
+        }
+        f, open_psd = spectra["open_loop"]
+        out = {}
+        for run in ("dfs", "fuzzy"):
+            values = []
+            for mode in modes:  # the open loop's peak bin within 15 % of the model's frequency
+                band = np.flatnonzero(np.abs(f - mode) <= 0.15 * mode)
+                peak = band[np.argmax(open_psd[band])]
+                values.append(10 * np.log10(open_psd[peak] / spectra[run][1][peak]))
+            out[run] = values
+        return out
+
+    for name, settings in ESTIMATORS.items():
+        expected = reduction("tip", settings)
+        for run in ("dfs", "fuzzy"):
+            np.testing.assert_allclose(res["vibration_reduction_db_by_estimator"][name][run], expected[run], rtol=1e-6, err_msg=name)
+    first = next(iter(ESTIMATORS))
+    assert res["vibration_reduction_db"] == res["vibration_reduction_db_by_estimator"][first] and first == "hann-1024"
+    q1 = reduction("q1", ESTIMATORS[first])
+    for run in ("dfs", "fuzzy"):
+        np.testing.assert_allclose(res["vibration_reduction_db_q1"][run], q1[run], rtol=1e-6)
+
+    # settling times: the 2 % band of the README
+    for run in ("dfs", "fuzzy"):
+        for signal, values in (("q1", traj[run].x[:, 1]), ("tip_deflection_m", traj[run].z[:, 1])):
+            assert res["runs"][run][signal]["settling_time_s"] == pytest.approx(_settling_reference(np.asarray(values), 1e-3), abs=1e-12)
+
+    # Rayleigh: both flexible modes of the 2-mode model at the damping ratio
+    w1, w2 = 2 * np.pi * modes
+    zeta = arm.damping_ratio
+    np.testing.assert_allclose([res["model"]["rayleigh_alpha"], res["model"]["rayleigh_beta"]], [2 * zeta * w1 * w2 / (w1 + w2), 2 * zeta / (w1 + w2)], rtol=1e-9)
+
+    # report.md's cells are those numbers, in their columns
+    report = (out / "report.md").read_text()
+    exact = res["model"]["exact_natural_frequencies_hz"]
+    assert f"| 1 | 16 | {modes[0]:.3f} | {exact[0]:.3f} |" in report
+    assert f"| 2 | 55 | {modes[1]:.3f} | {exact[1]:.3f} |" in report
+    dfs = res["runs"]["dfs"]
+    assert f"| DFS | settling time | 0.25 s | {dfs['q1']['settling_time_s']:.3f} s | {dfs['tip_deflection_m']['settling_time_s']:.3f} s |" in report
+
+
 def test_report_states_whether_the_papers_ordering_holds(reproduced):
     """The paper concludes that DFS reduces vibration more than the fuzzy controller; the
     report says "agrees" only when jaxflex's DFS reduction is the larger at every mode."""

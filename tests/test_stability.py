@@ -446,3 +446,36 @@ def test_a_plant_whose_polynomial_overflows_is_refused_by_name():
     with pytest.raises(ValueError, match=r"n_modes = 18: the coefficients of this plant's characteristic polynomial overflow float64"):
         st.crossing_frequencies(make_plant(n_modes=18), 55.0)
     assert st.crossing_frequencies(make_plant(n_modes=17), 55.0).size > 0
+
+
+def _root_near(plant, k, tau, s0, deflate=False):
+    """The root of Delta(s, tau) (of Delta / s with ``deflate``, past the structural root at 0)
+    nearest ``s0``, by Newton's method with a central-difference derivative."""
+    f = (lambda s: st.delta(plant, k, tau, s) / s) if deflate else (lambda s: st.delta(plant, k, tau, s))
+    s = complex(s0)
+    for _ in range(50):
+        h = 1e-7 * max(1.0, abs(s))
+        step = f(s) / ((f(s + h) - f(s - h)) / (2 * h))
+        s -= step
+        if abs(step) < 1e-13 * max(1.0, abs(s)):
+            break
+    return s
+
+
+def test_root_velocities_match_finite_differences_of_the_roots(plant, crit):
+    """Re ds/dtau at each crossing, and ds/dtau of the real crossing through 0, are numbers
+    in the stability report: their magnitudes, not only their signs, against the roots of
+    Delta moved by a central difference in tau."""
+    checked = 0
+    for k, result in crit.items():
+        for cr in (cr for cr in result.crossings if cr.tau_s.size):
+            tau = cr.tau_s[0]
+            h = 1e-5 * tau
+            up, down = (_root_near(plant, k, tau + d, 1j * cr.omega) for d in (h, -h))
+            np.testing.assert_allclose(cr.re_dsdtau[0], ((up - down) / (2 * h)).real, rtol=1e-4, err_msg=f"k = {k}, {cr.freq_hz} Hz")
+            checked += 1
+    assert checked >= 4
+    zero = crit[-55.0].zero_crossing
+    h = 1e-3 * zero.tau_s  # Delta / s loses digits near 0 (4e-7 at tau_0): a wider step keeps the roots above that
+    up, down = (_root_near(plant, -55.0, zero.tau_s + d, 1e-9, deflate=True) for d in (h, -h))
+    np.testing.assert_allclose(zero.dsdtau, ((up - down) / (2 * h)).real, rtol=1e-4)

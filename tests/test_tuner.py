@@ -11,6 +11,7 @@ import pytest
 
 import jaxflex as jf
 from jaxflex.controllers import DFSParams, dfs
+from jaxflex.rollout import RunMetrics
 from jaxflex.scenarios import ScenarioSpec, sample_scenarios
 from tests.helpers import tree_allclose
 from jaxflex.analysis import stability
@@ -43,6 +44,9 @@ def test_reductions_against_numpy():
     assert l.max() - 0.01 * np.log(40) <= smooth <= l.max() + 1e-12
     # Levels whose tail (1 - level) * B is a whole number average exactly that many losses,
     # although the product rounds above it in floating point ((1 - 0.7) * 10 = 3.0000000000000004).
+    # a fractional tail is rounded up: 0.1 of 15 averages the worst 2
+    values = jnp.asarray([5.0, 1.0, 9.0, 2.0, 7.0, 3.0, 0.0, 4.0, 6.0, 8.0, 1.5, 2.5, 3.5, 4.5, 5.5])
+    assert float(objectives.reduce_losses(values, ObjectiveSpec(reduction="cvar", cvar_level=0.9))) == pytest.approx(8.5, rel=1e-12)
     for level, batch in ((0.7, 10), (0.95, 100), (0.99, 100), (0.7, 1000)):
         tail = round((1 - level) * batch)
         values = jnp.arange(float(batch))
@@ -110,6 +114,15 @@ def test_log_spectral_radius_gradient_at_a_whole_delay(plant2, delay_steps):
     assert float(g_d) == pytest.approx(from_above, rel=1e-4)
 
 
+def test_objective_terms_read_their_own_metrics():
+    """Each weight of [objective] acts on its own metric (distinct values, so a swap shows),
+    and the vibration term sums the energy of every mode."""
+    m = RunMetrics(*(jnp.asarray(v) for v in (0.1, 2.0, 0.3, 5.0, 7.0, 0.0, 0.2, 1.0, False)), jnp.asarray([11.0, 13.0]))
+    terms = objectives.terms_from_metrics(m)
+    assert [float(t) for t in terms] == [2.0, 5.0, 7.0, 24.0]
+    assert objectives.TERMS == objectives.Terms._fields == ("tip_ise", "hub_ise", "effort", "vibration")
+
+
 def test_stability_penalty_is_in_decay_rate_per_second():
     """The penalty compares the slowest mode's decay rate -log(radius) / dt (1/s) with
     min_decay_rate: half the minimum costs weight * (min / 2)^2, twice the minimum nothing,
@@ -118,6 +131,8 @@ def test_stability_penalty_is_in_decay_rate_per_second():
     for dt in (1e-3, 1e-4):
         assert float(objectives.stability_penalty(jnp.asarray(-dt * 1.0), dt, spec)) == pytest.approx(3.0 * 1.0**2, rel=1e-12)
         assert float(objectives.stability_penalty(jnp.asarray(-dt * 4.0), dt, spec)) == 0.0
+        # a deficit other than 1 shows the square: a loop that does not decay at all costs 3 * 2^2
+        assert float(objectives.stability_penalty(jnp.asarray(0.0), dt, spec)) == pytest.approx(12.0, rel=1e-12)
     # the paper's loop (k = 55, tau = 5 ms) decays at about 9 /s: the default does not penalise it
     plant = jf.discretize(jf.make_plant(n_modes=2), 1e-3, "zoh")
     log_r = float(np.log(stability.spectral_radius(plant, 55.0, 5)))
