@@ -150,7 +150,7 @@ def plain_params(params: Any) -> BeamParams:
     """
     if not isinstance(params, BeamParams):
         raise ValueError(f"beam must be a BeamParams; got {params!r}")
-    return params_from_mapping({key: value for key, value in params._asdict().items() if value is not None})
+    return params_from_mapping({key: value for key, value in params._asdict().items() if value is not None or not key.startswith("rayleigh")})
 
 
 def check_n_modes(n_modes: int) -> int:

@@ -13,6 +13,7 @@ import math
 import numbers
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
 SEED_RANGE = (-(2**63), 2**63)
@@ -60,6 +61,6 @@ def real_array(name: str, value: Any, *, scalar: bool = False) -> np.ndarray:
         arr = np.asarray(value)
     except (TypeError, ValueError) as err:  # ragged sequences
         raise ValueError(accepted) from err
-    if arr.dtype.kind not in "iuf":
+    if arr.dtype == bool or not (np.issubdtype(arr.dtype, np.integer) or jnp.issubdtype(arr.dtype, jnp.floating)):  # jnp: bfloat16 too
         raise ValueError(accepted)
     return arr

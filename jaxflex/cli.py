@@ -83,7 +83,7 @@ def _parser() -> argparse.ArgumentParser:
     stab.add_argument("--modes", type=_positive_int, default=None, help="number of assumed modes (default: the config's n_modes, else 2)")
     stab.add_argument("--dt", type=float, default=None, help="sample time of the sampled loop (s; default: the config's [scenarios] dt, else 0.001)")
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
-    stab.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the arm (default the paper's), its n_modes and [scenarios] dt the defaults of --modes and --dt; its other keys are checked and not used")
+    stab.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the arm (default the paper's), its n_modes and [scenarios] dt the defaults of --modes and --dt; a top-level key neither tune nor montecarlo accepts is refused, the other keys are not read")
     stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
 
     bench = sub.add_parser("bench", help="quick benchmark of vectorised closed-loop rollouts (under two minutes); prints a table")

@@ -36,9 +36,11 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
 @contextlib.contextmanager
 def replace_outputs(folder: str | os.PathLike, owned: Iterable[str], last: str | None = None) -> Iterator[str]:
     """A staging folder for a run's files: what is written there replaces ``folder``'s files
-    together when the block ends, ``last`` (say results.json) after the others; the files
-    named in ``owned`` that this run did not write are removed (a figure of an earlier run
-    with other options). An exception (Ctrl-C included) leaves ``folder`` as it was.
+    when the block ends, in one pass of renames (``last``, say results.json, after the
+    others), and then the files named in ``owned`` that this run did not write are removed
+    (a figure of an earlier run with other options). An exception in the block (Ctrl-C
+    included) leaves ``folder`` as it was; only the final pass, a few renames, is not one
+    step.
     """
     folder = os.fspath(folder)
     os.makedirs(folder, exist_ok=True)
@@ -46,12 +48,12 @@ def replace_outputs(folder: str | os.PathLike, owned: Iterable[str], last: str |
     try:
         yield stage
         written = sorted(os.listdir(stage), key=lambda name: name == last)
-        for name in set(owned) - set(written):
-            with contextlib.suppress(FileNotFoundError):
-                os.remove(os.path.join(folder, name))
         for name in written:
             os.chmod(os.path.join(stage, name), _mode_for(os.path.join(folder, name)))
             os.replace(os.path.join(stage, name), os.path.join(folder, name))
+        for name in set(owned) - set(written):
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(folder, name))
     finally:
         shutil.rmtree(stage, ignore_errors=True)
 

@@ -20,7 +20,16 @@ import numpy as np  # noqa: E402
 from jaxflex import fileio  # noqa: E402
 
 _STYLES = {"open_loop": dict(color="0.45", ls="--", lw=1.0), "dfs": dict(color="C0", lw=1.2), "fuzzy": dict(color="C3", lw=1.2)}
-_OTHER_STYLE = dict(color="C2", lw=1.4, ls="-.")  # a run beside the paper's (a tuned one): never C0/C3
+# Runs beside the paper's (a tuned one, "paper gains" and "tuned" of jaxflex tune), in turn:
+# never the paper's colours C0/C3 of another run in the same figure.
+_OTHER_STYLES = (dict(color="C2", lw=1.4, ls="-."), dict(color="C1", lw=1.2), dict(color="C4", lw=1.2, ls=":"), dict(color="C5", lw=1.2, ls="--"))
+
+
+def _styles(runs: Sequence[str]) -> dict[str, dict]:
+    """A distinct style per run of one figure: the paper's runs keep theirs, the others take
+    ``_OTHER_STYLES`` in turn (then matplotlib's defaults)."""
+    others = iter(_OTHER_STYLES)
+    return {run: _STYLES[run] if run in _STYLES else next(others, {}) for run in runs}
 LABELS = {"open_loop": "Open loop", "dfs": "DFS", "fuzzy": "PD-type fuzzy", "dfs+fuzzy": "DFS + fuzzy"}
 
 
@@ -40,13 +49,14 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
       title: figure title.
     """
     fig, axes = plt.subplots(len(signals), 1, figsize=(7.5, 2.6 * len(signals)), sharex=True, squeeze=False)
+    styles = _styles(list(runs))
     for ax, (name, ylabel) in zip(axes[:, 0], signals):
         settled = []  # the values of the runs that did not diverge
         for run, sig in runs.items():
             values = np.asarray(sig[name])
             n = _finite_prefix(values)
             label = LABELS.get(run, run) + (" (diverged)" if diverged.get(run, False) else "")
-            ax.plot(t[:n], values[:n], label=label, **_STYLES.get(run, _OTHER_STYLE))
+            ax.plot(t[:n], values[:n], label=label, **styles[run])
             if not diverged.get(run, False):
                 settled.append(values[:n])
         if settled and len(settled) < len(runs) and any(v.size for v in settled):
@@ -70,10 +80,11 @@ def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Seque
         fmax = min(float(np.max(freqs)), max(150.0, 1.5 * max(mode_freqs_hz, default=0.0)))
     fig, ax = plt.subplots(figsize=(7.5, 3.6))
     keep = freqs <= fmax
+    styles = _styles(list(runs))
     for run, psd in runs.items():
         psd = np.asarray(psd)
         if np.all(np.isfinite(psd)):
-            ax.semilogy(freqs[keep], np.maximum(psd[keep], 1e-300), label=LABELS.get(run, run), **_STYLES.get(run, {}))
+            ax.semilogy(freqs[keep], np.maximum(psd[keep], 1e-300), label=LABELS.get(run, run), **styles[run])
         else:  # a diverged run: named in the legend, not drawn
             ax.plot([], [], " ", label=f"{LABELS.get(run, run)} (non-finite, not drawn)")
     shown = [f for f in mode_freqs_hz if f <= fmax]

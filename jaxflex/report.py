@@ -4,8 +4,8 @@
 torque held over each sample): the open loop, DFS (k = 55, tau = 5 ms) and the PD-type fuzzy
 controller (k1 = 1.02, k2 = 0.30, k3 = 1.0, Mamdani centroid). It writes the paper's figures,
 ``report.md`` with every number the paper reports beside jaxflex's, and ``results.json``.
-The files replace the folder's together at the end (``results.json`` last), so an
-interrupted run leaves the folder as it was.
+The files are renamed over the folder's at the end (``results.json`` last), so a run
+interrupted before that leaves the folder as it was.
 """
 
 from __future__ import annotations
@@ -247,7 +247,7 @@ class Tuned(NamedTuple):
         """How the model these gains were tuned on differs from ``arm`` with ``n_modes`` modes
         sampled by ``method`` every ``dt`` s: one phrase per difference (empty when they
         agree), e.g. "another arm (length_m = 1.2)" for the tuned arm's own values."""
-        other = [f"{k} = {v:g}" for k, v in self.beam._asdict().items() if v != getattr(arm, k)]
+        other = [f"{k} = {'derived' if v is None else f'{v:g}'}" for k, v in self.beam._asdict().items() if v != getattr(arm, k)]
         out = [f"another arm ({', '.join(other)})"] if other else []
         if self.n_modes != n_modes:
             out.append(f"{self.n_modes} modes (here {n_modes})")
@@ -415,7 +415,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     }
 
     say("drawing figures")
-    # Written together at the end: Ctrl-C leaves the folder as it was, and a figure of an
+    # Renamed into place at the end: Ctrl-C leaves the folder as it was, and a figure of an
     # earlier run with other options (fig_tuned_response.png) does not survive beside these.
     with fileio.replace_outputs(out_dir, [*FIGURES, TUNED_FIGURE, "report.md", "results.json"], last="results.json") as stage:
         t = np.asarray(trajectories["open_loop"].t)

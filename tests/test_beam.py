@@ -188,6 +188,9 @@ def test_bad_parameters_are_rejected(kwargs, match):
 def test_a_dict_of_fields_is_refused_by_name():
     with pytest.raises(ValueError, match=r"params must be a BeamParams .*got dict"):
         beam.natural_frequencies_hz({"length_m": 1.2}, 2)
+    # a configuration's arm too: a None field was dropped there, leaving the paper's value
+    with pytest.raises(ValueError, match=r"beam thickness_m must be a finite number > 0; got None"):
+        beam.plain_params(BeamParams(thickness_m=None))
 
 
 @pytest.mark.parametrize("n", [0, -1, 2.0, True])

@@ -367,6 +367,11 @@ def test_validation():
         fuzzy_params(k3="1.0")
     with pytest.raises(ValueError, match=r"centres must be a real number or an array of real numbers"):
         fuzzy_params(centres=("-1", "-0.5", "0", "0.5", "1"))
+    # traced values are built as they are (checked where used), and bfloat16 is a real dtype
+    assert float(jax.jit(lambda k: fuzzy_params(k, 0.3).k1)(2.0)) == 2.0
+    assert float(jax.grad(lambda k: 3.0 * fuzzy_params(k).k1)(1.0)) == 3.0
+    assert jax.vmap(lambda c: fuzzy_params(centres=c).angle_centres)(jnp.ones((2, 5))).shape == (2, 5)
+    check(fuzzy_params(dtype=jnp.bfloat16))
     with pytest.raises(ValueError, match=r"k2 must be a real number; got True"):
         check(fuzzy_params()._replace(k2=True))
     with pytest.raises(ValueError, match=r"angle_centres must be a real number or an array"):

@@ -82,18 +82,22 @@ def test_zoh_matches_scipy_expm_and_python_control_c2d():
 STIFF_ARM = BeamParams(length_m=0.5, width_m=0.025, thickness_m=0.02, youngs_modulus_pa=200e9, density_kg_m3=7850.0, hub_inertia_kg_m2=2e-3)
 
 
+UNDAMPED_ARM = BeamParams(rayleigh_alpha=0.0, rayleigh_beta=0.0)
+
+
 @pytest.mark.parametrize(
     "arm, n_modes, rtol",
     [
-        (BeamParams(), 2, 2e-6),  # unbalanced: 9.5e-5
-        (BeamParams(), 6, 1e-4),  # unbalanced: 6 %
-        (STIFF_ARM, 3, 1e-3),  # modes 0.27-1.3 kHz; unbalanced: NaN (17 squarings), or unstable with more
+        (BeamParams(), 2, 1e-6),  # unbalanced: 9.5e-5
+        (BeamParams(), 6, 1e-6),  # unbalanced: 6 %
+        (STIFF_ARM, 3, 5e-5),  # modes 0.27-1.3 kHz; unbalanced: NaN (17 squarings), or unstable with more
+        (UNDAMPED_ARM, 8, 1e-5),  # balancing every index at once (a 2-cycle) left 0.17 here
     ],
 )
 def test_float32_zoh_is_balanced(arm, n_modes, rtol):
     """A float32 ZOH against scipy's expm of the same (float32) plant in float64. The modal
     matrices are badly scaled; the balanced expm stays accurate, finite and as stable as the
-    arm (error relative to each column's largest entry)."""
+    arm (error relative to each column's largest entry), and the balancing does balance."""
     p = make_plant(BeamParams(*(None if v is None else jnp.float32(v) for v in arm)), n_modes)
     d = discretize(p, 1e-3, "zoh")
     assert d.Ad.dtype == jnp.float32
@@ -106,6 +110,13 @@ def test_float32_zoh_is_balanced(arm, n_modes, rtol):
     error = np.max(np.abs(got - phi[:n]) / np.abs(phi[:n]).max(axis=0))
     assert error < rtol, error
     assert np.max(np.abs(np.linalg.eigvals(np.asarray(d.Ad, float)))) <= 1 + 1e-6
+    scale = np.asarray(plant_mod._balancing_scales(jnp.asarray(block * 1e-3, jnp.float32)), float)
+    balanced = np.abs(block * 1e-3) * scale[None, :] / scale[:, None]
+    np.fill_diagonal(balanced, 0.0)
+    rows, cols = balanced.sum(axis=1), balanced.sum(axis=0)
+    live = (rows > 0) & (cols > 0)
+    assert np.all(np.log2(scale) == np.round(np.log2(scale)))  # powers of 2: an exact similarity
+    assert np.max(np.maximum(rows[live] / cols[live], cols[live] / rows[live])) <= 2.0
 
 
 def test_rk4_converges_to_zoh_at_fourth_order():

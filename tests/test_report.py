@@ -352,6 +352,24 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     assert (out / "fig_tuned_response.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_tuned_differences_name_each_field_that_differs():
+    """Tuned.differences against a model: the arm's fields (a derived Rayleigh pair included:
+    it was formatted as a number and crashed), the mode count, dt and method."""
+    from jaxflex.beam import BeamParams
+    from jaxflex.report import Tuned
+
+    tuned = Tuned("dfs", {"k": 55.0, "tau_s": 0.005}, {}, BeamParams(length_m=1.2), 1e-3, 2, "rk4")
+    assert tuned.differences(BeamParams(length_m=1.2), 2, 1e-3, "rk4") == []
+    assert tuned.differences(BeamParams(length_m=1.2), 2, 1e-3 * (1 + 1e-9), "rk4") == []  # float32 round-off of dt
+    given = BeamParams(length_m=1.2, rayleigh_alpha=0.5, rayleigh_beta=1e-5)
+    assert tuned.differences(given, 3, 2e-3, "zoh") == [
+        "another arm (rayleigh_alpha = derived, rayleigh_beta = derived)",
+        "2 modes (here 3)",
+        "dt = 0.001 s (here 0.002 s)",
+        "method = 'rk4' (here 'zoh')",
+    ]
+
+
 def test_one_mode_report_says_which_modes_it_compared(tmp_path, monkeypatch):
     """With one mode only mode 1 is compared; the report once said 'at both modes'. The
     folder's files are replaced together: an interrupted run leaves it as it was, and a
@@ -400,3 +418,10 @@ def test_response_figure_tells_runs_apart_and_scales_to_the_settled_ones():
     assert len(set(colours)) == 3
     assert -2e-3 < lo < -5e-4 and 1e-3 <= hi < 2e-3  # the settled runs' range, padded
     assert "Open loop (diverged)" in labels
+    # jaxflex tune's two runs, neither a paper run, get two styles too (they once shared one)
+    for draw in (lambda: plotting.responses(t, {"paper gains": {"q1": decay}, "tuned": {"q1": decay}}, [("q1", "q1 (m)")], {}, "title"),
+                 lambda: plotting.psds(t, {"paper gains": decay + 1.0, "tuned": decay + 1.0}, (), "y", "title")):
+        fig = draw()
+        styles = {(line.get_color(), line.get_linestyle()) for line in fig.axes[0].get_lines()}
+        plt.close(fig)
+        assert len(styles) == 2

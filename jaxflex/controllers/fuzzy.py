@@ -169,12 +169,14 @@ def fuzzy_params(
       The parameters; ``check`` of the controller validates their values.
 
     Raises:
-      ValueError: naming an argument that is not a real number (or, for ``centres``, an
-        array of them).
+      ValueError: naming a concrete argument that is not a real number (or, for
+        ``centres``, an array of them).
     """
     for name, value in (("k1", k1), ("k2", k2), ("k3", k3)):
-        checks.real_array(name, value, scalar=True)
-    checks.real_array("centres", centres)
+        if is_concrete(value):  # traced values (jit, grad, vmap) are checked where they are used
+            checks.real_array(name, value, scalar=True)
+    if is_concrete(centres):
+        checks.real_array("centres", centres)
     dtype = float if dtype is None else dtype
     c = jnp.asarray(centres, dtype=dtype)
     return FuzzyParams(
