@@ -61,6 +61,6 @@ def real_array(name: str, value: Any, *, scalar: bool = False) -> np.ndarray:
         arr = np.asarray(value)
     except (TypeError, ValueError) as err:  # ragged sequences
         raise ValueError(accepted) from err
-    if arr.dtype == bool or not (np.issubdtype(arr.dtype, np.integer) or jnp.issubdtype(arr.dtype, jnp.floating)):  # jnp: bfloat16 too
+    if not (jnp.issubdtype(arr.dtype, jnp.integer) or jnp.issubdtype(arr.dtype, jnp.floating)):  # bool is neither; bfloat16 is floating
         raise ValueError(accepted)
     return arr

@@ -323,7 +323,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
         import jax
 
         jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id)
-    from jaxflex.beam import params_from_mapping, plain_params
+    from jaxflex.beam import params_from_mapping
     from jaxflex.montecarlo import MCConfig, run_montecarlo
     from jaxflex.report import format_value, load_tuned
     from jaxflex.scenarios import ScenarioSpec
@@ -355,7 +355,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed}
     values.update({k: v for k, v in overrides.items() if v is not None})
     config = MCConfig(**values)
-    if tuned is not None and (differences := tuned.differences(plain_params(config.beam), config.n_modes, config.scenarios.dt, config.method)):
+    if tuned is not None and (differences := tuned.differences(config.beam, config.n_modes, config.scenarios.dt, config.method)):
         print(f"note: {args.params} was tuned for {', '.join(differences)}; --config sets what runs here", file=sys.stderr)
     print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
     summary = run_montecarlo(config, args.out, resume=args.resume, progress=not args.no_progress)

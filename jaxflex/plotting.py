@@ -20,6 +20,7 @@ import numpy as np  # noqa: E402
 from jaxflex import fileio  # noqa: E402
 
 _STYLES = {"open_loop": dict(color="0.45", ls="--", lw=1.0), "dfs": dict(color="C0", lw=1.2), "fuzzy": dict(color="C3", lw=1.2)}
+LABELS = {"open_loop": "Open loop", "dfs": "DFS", "fuzzy": "PD-type fuzzy", "dfs+fuzzy": "DFS + fuzzy"}
 # Runs beside the paper's (a tuned one, "paper gains" and "tuned" of jaxflex tune), in turn:
 # never the paper's colours C0/C3 of another run in the same figure.
 _OTHER_STYLES = (dict(color="C2", lw=1.4, ls="-."), dict(color="C1", lw=1.2), dict(color="C4", lw=1.2, ls=":"), dict(color="C5", lw=1.2, ls="--"))
@@ -30,7 +31,6 @@ def _styles(runs: Sequence[str]) -> dict[str, dict]:
     ``_OTHER_STYLES`` in turn (then matplotlib's defaults)."""
     others = iter(_OTHER_STYLES)
     return {run: _STYLES[run] if run in _STYLES else next(others, {}) for run in runs}
-LABELS = {"open_loop": "Open loop", "dfs": "DFS", "fuzzy": "PD-type fuzzy", "dfs+fuzzy": "DFS + fuzzy"}
 
 
 def _finite_prefix(values: np.ndarray) -> int:
