@@ -114,7 +114,7 @@ def reduction_bars(reductions: Mapping[str, Mapping[str, Sequence[float]]], pape
     groups = [(c, m) for c in controllers for m in range(n_modes)]
     n_bars = len(estimators) + (1 if paper else 0)
     width = 0.8 / n_bars
-    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    fig, ax = plt.subplots(figsize=(9.0, 3.8))
     x = np.arange(len(groups))
     for i, est in enumerate(estimators):
         vals = np.array([np.nan if reductions[est][c][m] is None else reductions[est][c][m] for c, m in groups], float)
@@ -126,7 +126,7 @@ def reduction_bars(reductions: Mapping[str, Mapping[str, Sequence[float]]], pape
     ax.set_ylabel("Reduction (dB)")
     ax.set_title("Level of vibration reduction at the natural frequencies")
     ax.grid(alpha=0.3, axis="y")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the bars, hiding none
     fig.tight_layout()
     return fig
 

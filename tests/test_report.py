@@ -178,6 +178,20 @@ def test_reduction_bars_leave_out_a_diverged_run():
     assert heights == [60.0, 70.0, 0.0, 0.0]
 
 
+def test_reduction_bars_legend_hides_no_bar():
+    from jaxflex import plotting
+
+    # the reproduction's figure: four estimators and the paper's bars, the tallest 123.4 dB
+    db = {"hann-1024": ([68.0, 82.8], [89.0, 86.7]), "hann-256": ([52.9, 55.1], [42.6, 63.8]), "hann-3000": ([90.0, 96.5], [95.8, 97.3]), "boxcar-3000": ([28.8, 22.0], [28.8, 20.9])}
+    fig = plotting.reduction_bars({est: {"dfs": d, "fuzzy": f} for est, (d, f) in db.items()}, {"dfs": [123.4, 66.9], "fuzzy": [102.2, 23.2]})
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    legend = ax.get_legend().get_window_extent()
+    hidden = [p.get_height() for p in ax.patches if p.get_window_extent().overlaps(legend)]
+    plotting.plt.close(fig)
+    assert hidden == []
+
+
 def test_failed_write_keeps_the_previous_file(tmp_path):
     path = tmp_path / "results.json"
     fileio.write_json(path, {"good": 1})
