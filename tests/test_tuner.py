@@ -324,6 +324,19 @@ def test_bad_input_is_refused(tmp_path):
     assert (tmp_path / CHECKPOINT).exists()
 
 
+@pytest.mark.parametrize("best_step", [0, 3])
+def test_cli_tune_says_when_no_update_helped(monkeypatch, tmp_path, capsys, best_step):
+    from jaxflex import cli
+    from tuning import run
+
+    objective = {"train": {"before": 1.0, "after": 1.0}, "heldout": {"before": 1.8, "after": 1.8}}
+    summary = {"controller": "fuzzy", "params": {"k1": 1.0}, "paper_params": {"k1": 1.0}, "objective": objective, "steps_run": 5, "best_step": best_step, "stopped_early": False}
+    monkeypatch.setattr(run, "run_tune", lambda config, out, resume, progress: summary)
+    assert cli.main(["tune", "--controller", "fuzzy", "--scenarios", "7", "--steps", "5", "--lr", "0.01", "--out", str(tmp_path), "--no-progress"]) == 0
+    note = "note: no update improved the held-out objective, so the starting gains are kept; more training scenarios (now 7) or a lower learning_rate (now 0.01) may help"
+    assert (note in capsys.readouterr().err) == (best_step == 0)
+
+
 def test_cli_tune_with_toml_config(tmp_path, capsys):
     from jaxflex import cli
 

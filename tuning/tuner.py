@@ -378,7 +378,7 @@ def tune(
             state["history"].append(row)
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss:.4g}", val=f"{state['best_val']:.4g}")
+                bar.set_postfix(loss=f"{loss:.4g}", best_val=f"{state['best_val']:.4g}")
             if state["step"] % config.checkpoint_every == 0:
                 _save_checkpoint(ckpt_path, state)
                 fileio.write_text(os.path.join(out_dir, "history.csv"), _history_csv(state["history"], names))
