@@ -153,12 +153,20 @@ def save(fig: plt.Figure, path: str | os.PathLike) -> None:
         plt.close(fig)
 
 
-def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str) -> plt.Figure:
-    """Training loss per step and held-out objective at each validation (log scale)."""
+def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str, best_step: int | None = None) -> plt.Figure:
+    """Training loss per step and held-out objective at each validation; log scale where the
+    finite positive values span a decade or more (over less, a log axis labels one tick).
+    ``best_step``: the step whose parameters were kept, marked by a vertical line."""
     fig, ax = plt.subplots(figsize=(7.0, 3.6))
-    ax.semilogy(steps, loss, label="training loss (objective + penalty)", color="C0")
+    ax.plot(steps, loss, label="training loss (objective + penalty)", color="C0")
     if len(val_steps):
-        ax.semilogy(val_steps, val, "o-", label="held-out objective", color="C1", ms=3)
+        ax.plot(val_steps, val, "o-", label="held-out objective", color="C1", ms=3)
+    if best_step is not None:
+        ax.axvline(best_step, color="k", ls=":", lw=1, label=f"kept: the parameters after {best_step} updates")
+    values = np.concatenate([np.asarray(loss, float).ravel(), np.asarray(val, float).ravel()])
+    values = values[np.isfinite(values) & (values > 0)]
+    if values.size and values.max() >= 10 * values.min():
+        ax.set_yscale("log")
     ax.set_xlabel("Step")
     ax.set_ylabel("Objective (1 = paper gains, training)")
     ax.grid(alpha=0.3, which="both")

@@ -192,6 +192,18 @@ def test_reduction_bars_legend_hides_no_bar():
     assert hidden == []
 
 
+@pytest.mark.parametrize("low, scale", [(0.87, "linear"), (0.05, "log")])
+def test_loss_curves_use_a_log_axis_over_a_decade_or_more(low, scale):
+    from jaxflex import plotting
+
+    steps = np.arange(20)
+    fig = plotting.loss_curves(steps, np.linspace(1.0, low, 20), np.array([0, 10, 19]), np.array([1.8, 2.2, 2.0]), "t", best_step=10)
+    assert fig.axes[0].get_yscale() == scale
+    kept = [line for line in fig.axes[0].get_lines() if line.get_label().startswith("kept")]
+    assert [line.get_label() for line in kept] == ["kept: the parameters after 10 updates"] and list(kept[0].get_xdata()) == [10, 10]
+    plotting.plt.close(fig)
+
+
 def test_failed_write_keeps_the_previous_file(tmp_path):
     path = tmp_path / "results.json"
     fileio.write_json(path, {"good": 1})
