@@ -355,7 +355,7 @@ def exact_natural_frequencies_hz(params: BeamParams, n_freqs: int = 2) -> np.nda
     bisection, in NumPy float64. Not differentiable: it is the reference that the
     assumed-mode frequencies converge to from above as n grows.
     """
-    n_freqs = check_n_modes(n_freqs)
+    n_freqs = checks.integer("n_freqs", n_freqs)
     check_beam_params(params)
     p = {name: float(np.asarray(getattr(params, name))) for name in _POSITIVE_FIELDS + _NONNEGATIVE_FIELDS}
     rho_a = p["density_kg_m3"] * p["width_m"] * p["thickness_m"]

@@ -79,6 +79,8 @@ def test_mass_and_stiffness_against_quadrature_with_payload():
 def test_library_exact_frequencies_match_hand_derived_equation():
     params = BeamParams()
     np.testing.assert_allclose(beam.exact_natural_frequencies_hz(params, 5), _exact_no_payload_hz(params, 5), rtol=RTOL_ROOT)
+    with pytest.raises(ValueError, match=r"n_freqs must be an integer >= 1; got 0"):
+        beam.exact_natural_frequencies_hz(params, 0)
 
 
 def test_payload_frequencies_converge_from_above():

@@ -146,10 +146,12 @@ def test_samples_at():
     np.testing.assert_array_equal(samples_at(s, dt, (0.0, 0.25, 0.3, 0.504, 0.506, 1.0)), [0, 50, 60, 100, 102, 200])
     s2 = np.stack([s, -s], axis=1)
     np.testing.assert_array_equal(samples_at(s2, dt, (0.1,)), [[20.0, -20.0]])
-    with pytest.raises(ValueError, match="times_s must lie in the record"):
-        samples_at(s, dt, (1.01,))
-    with pytest.raises(ValueError, match="times_s must lie in the record"):
-        samples_at(s, dt, (-0.01,))
+    within = r"times_s must lie in the record \[0, 1\] s to within half a sample, \[-0.005, 1.005\) s"
+    np.testing.assert_array_equal(samples_at(s, dt, (-0.0049, 1.0049)), [0, 200])
+    with pytest.raises(ValueError, match=within + r" .*got \[1.0051\]"):
+        samples_at(s, dt, (1.0051,))
+    with pytest.raises(ValueError, match=within + r" .*got \[-0.0051\]"):
+        samples_at(s, dt, (-0.0051,))
     # Traced dt: same values, NaN (not an error) outside the record.
     got = jax.jit(lambda s, dt: samples_at(s, dt, (0.25, 2.0)))(s, dt)
     np.testing.assert_array_equal(got[:1], [50.0])

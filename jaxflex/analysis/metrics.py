@@ -252,8 +252,8 @@ def samples_at(s: ArrayLike, dt: ArrayLike, times_s: Sequence[float]) -> jax.Arr
         bad = (idx < 0) | (idx > n_t - 1)
         if np.any(bad):
             raise ValueError(
-                f"times_s must lie in the record [0, {(n_t - 1) * dt_val}] s (T = {n_t}, dt = {dt_val}); "
-                f"got {times[bad].tolist()}"
+                f"times_s must lie in the record [0, {(n_t - 1) * dt_val:g}] s to within half a sample, "
+                f"[{-dt_val / 2:g}, {(n_t - 0.5) * dt_val:g}) s (T = {n_t}, dt = {dt_val:g}); got {times[bad].tolist()}"
             )
         return s[idx]
     idx = jnp.floor(jnp.asarray(times, s.dtype) / dt_arr + 0.5).astype(jnp.int32)
