@@ -245,6 +245,31 @@ def test_spectral_radius_jit_vmap_grad(plant):
     np.testing.assert_allclose(g, fd, rtol=RTOL_GRAD)
 
 
+def test_spectral_radius_of_a_fractional_delay(plant):
+    """With n_hist given, a fractional delay (concrete or traced) is the linearly interpolated
+    loop, not cut to whole samples; its radius is differentiable in the delay."""
+    dplant = discretize(plant, 1e-3, "zoh")
+    n_hist = 8
+
+    def oracle(d):  # NumPy: the full loop's spectrum less the eigenvalue nearest 1
+        full = np.linalg.eigvals(np.asarray(st.sampled_loop_matrix(dplant, PAPER_K, d, n_hist)))
+        return np.abs(np.delete(full, np.argmin(np.abs(full - 1)))).max()
+
+    ds = [5.0, 5.3, 5.9, 6.0]
+    expected = np.asarray([oracle(d) for d in ds])
+    assert len(set(np.round(expected, 9))) == 4  # a whole-sample cut would repeat 5's radius
+    traced = jax.jit(jax.vmap(lambda d: st.spectral_radius(dplant, PAPER_K, d, n_hist)))
+    np.testing.assert_allclose(np.asarray(traced(jnp.asarray(ds))), expected, rtol=1e-12)
+    np.testing.assert_allclose([float(st.spectral_radius(dplant, PAPER_K, d, n_hist)) for d in ds], expected, rtol=1e-12)
+    g = float(jax.grad(lambda d: st.spectral_radius(dplant, PAPER_K, d, n_hist))(5.3))
+    h = 1e-5
+    np.testing.assert_allclose(g, (oracle(5.3 + h) - oracle(5.3 - h)) / (2 * h), rtol=RTOL_GRAD)
+    with pytest.raises(ValueError, match=r"delay_steps must be a number of samples in \[1, n_hist = 8\] .*got 8.5"):
+        st.spectral_radius(dplant, PAPER_K, 8.5, n_hist)
+    with pytest.raises(ValueError, match="delay_steps must be an integer >= 1"):
+        st.spectral_radius(dplant, PAPER_K, 5.3)  # no n_hist: whole samples only
+
+
 def test_chart_agrees_with_simulation(plant):
     """Points near the sampled stability boundary (|radius - 1| in [2e-3, 5e-2]), both sides:
     the jaxflex rollout (ZOH plant, dfs controller) grows from one late window to the next

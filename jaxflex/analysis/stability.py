@@ -570,17 +570,20 @@ def rightmost_root(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, n_cheb: i
 
 
 def _check_sampled_args(k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None) -> int:
+    """The history length: ``n_hist``, or a whole ``delay_steps`` when ``n_hist`` is None.
+    With ``n_hist`` given a concrete delay may be fractional, as a traced one."""
     if not isinstance(k, jax.core.Tracer):
         check_gain(k)
     if isinstance(delay_steps, jax.core.Tracer):
         if n_hist is None:
             raise ValueError("a traced delay_steps needs a static n_hist (history length >= every delay)")
         return _check_delay_steps(n_hist, "n_hist")
-    arr = np.asarray(delay_steps)
-    d = _check_delay_steps(arr.item() if arr.ndim == 0 and arr.dtype.kind in "iu" else delay_steps)
-    n_hist = d if n_hist is None else _check_delay_steps(n_hist, "n_hist")
-    if d > n_hist:
-        raise ValueError(f"delay_steps must be in [1, n_hist = {n_hist}]; got {d}")
+    arr = checks.real_array("delay_steps", delay_steps, scalar=True)
+    if n_hist is None:
+        return _check_delay_steps(arr.item() if arr.ndim == 0 and arr.dtype.kind in "iu" else delay_steps)
+    n_hist = _check_delay_steps(n_hist, "n_hist")
+    if arr.ndim != 0 or not 1 <= float(arr) <= n_hist:
+        raise ValueError(f"delay_steps must be a number of samples in [1, n_hist = {n_hist}] (fractional: linear interpolation); got {delay_steps!r}")
     return n_hist
 
 
@@ -595,7 +598,8 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
       plant: sampled plant (any ``discretize`` method: the map is exact for its Ad, Bd).
       k: gain (N*m/rad); may be traced.
       delay_steps: d >= 1 samples. An integer when ``n_hist`` is None (then ``n_hist = d``);
-        with ``n_hist`` given it may be traced (vmap over delays): history slots beyond
+        with ``n_hist`` given it may be fractional (linear interpolation, as
+        ``dfs(interpolation="linear")``) and traced (vmap over delays): history slots beyond
         floor(d) + 1 are neither shifted nor read, so they add only semisimple zero
         eigenvalues (no defective block whose computed eigenvalues would scatter by
         eps^(1/size)).
@@ -663,17 +667,19 @@ def _sampled_eigs(plant: DiscretePlant, k: jax.Array, delay_steps: jax.Array, v:
 def sampled_eigenvalues(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None = None) -> jax.Array:
     """Eigenvalues of the sampled loop with the structural eigenvalue 1 deflated (one copy per
     structural direction, by its known eigenvector ``[v, c v, ..., c v]``), by decreasing modulus.
-    The plant must be concrete (closed over under jit/vmap); k and the delay may be traced."""
+    The plant must be concrete (closed over under jit/vmap); k and the delay may be traced, and
+    with ``n_hist`` given the delay may be fractional (see ``sampled_loop_matrix``)."""
     n_hist = _check_sampled_args(k, delay_steps, n_hist)
     dtype = plant.Ad.dtype
     v = jnp.asarray(structural_directions(plant), dtype)
-    return _sampled_eigs(plant, jnp.asarray(k, dtype), jnp.asarray(delay_steps, jnp.int32), v, n_hist)
+    return _sampled_eigs(plant, jnp.asarray(k, dtype), jnp.asarray(delay_steps, dtype), v, n_hist)
 
 
 def spectral_radius(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None = None) -> jax.Array:
     """Spectral radius of the sampled DFS loop without the structural eigenvalue; < 1 is
     asymptotically stable. Jittable, vmappable over k and (with a static ``n_hist``) over
-    ``delay_steps``, differentiable in k where the largest modulus is simple or a conjugate pair."""
+    ``delay_steps``, which may then be fractional; differentiable in k, and in a fractional
+    delay between whole samples, where the largest modulus is simple or a conjugate pair."""
     return jnp.abs(sampled_eigenvalues(plant, k, delay_steps, n_hist)[0])
 
 
