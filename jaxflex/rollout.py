@@ -211,6 +211,8 @@ def rollout(
         x0 = tuple(jnp.where(same_dt(controller.dt, plant.dt), x_i, jnp.nan) for x_i in x0)
     y0 = jnp.stack(_matvec(C, x0)) + scenario.noise[0]
     state1, u0 = controller.step(params, controller.init(params, y0), y0)
+    if jnp.shape(u0) != (1,):
+        raise ValueError(f"the controller's step must return the torque u with shape (1,) (N*m); got shape {jnp.shape(u0)}")
     # noise[k + 1] for iteration k; the last iteration's controller step (its u[T] is never
     # used) sees zero noise.
     inputs = (scenario.force, jnp.concatenate([scenario.noise[1:], jnp.zeros_like(scenario.noise[:1])]))

@@ -1,6 +1,8 @@
 """Closed-loop rollout: a NumPy reference loop, jit/eager and vmap/loop agreement, gradients
 against central differences, and input validation."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -234,6 +236,16 @@ def test_bad_scenario_shapes_are_rejected(plant2):
         jf.rollout(plant2, open_loop(), OpenLoopParams(), sc._replace(noise=jnp.zeros((3, 2))))
     with pytest.raises(ValueError, match="dfs|dt must be"):
         dfs(dt=0.0)
+
+
+@pytest.mark.parametrize("u_shape", [(), (2,), (1, 1)])
+def test_a_controller_returning_another_torque_shape_is_refused(plant2, u_shape):
+    """A scalar failed deep in the scan; a (2,) torque ran, with its second entry in the effort."""
+    from jaxflex.controllers import Controller
+
+    own = Controller(lambda p, y0: (), lambda p, s, y: (s, -p * y[0] * jnp.ones(u_shape)), lambda p: None)
+    with pytest.raises(ValueError, match=re.escape(f"the controller's step must return the torque u with shape (1,) (N*m); got shape {u_shape}")):
+        jf.rollout(plant2, own, 5.0, paper_scenario(plant2, horizon_s=0.01), output="metrics")
 
 
 def test_float32_rollout_preserves_dtype():
