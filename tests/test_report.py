@@ -243,7 +243,7 @@ def test_readme_api_tour_runs(tmp_path):
     code = re.findall(r"```python\n(.*?)\n```", readme, re.S)[0]
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert result.returncode == 0, result.stderr
-    assert "(8, 3000, 3)" in result.stdout
+    assert "(8, 3000, 3)" in result.stdout and "(3000, 1)" in result.stdout
 
 
 def test_reproduce_prints_rounded_figures_beside_the_papers(reproduced):
