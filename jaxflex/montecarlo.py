@@ -111,6 +111,9 @@ class MCConfig:
             or any(isinstance(p, bool) or not (isinstance(p, (int, float)) and 0 <= p <= 100) for p in self.percentiles)
         ):
             raise ValueError(f"percentiles must be numbers in [0, 100]; got {self.percentiles!r}")
+        keys = [f"p{p:g}" for p in self.percentiles]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"percentiles must differ in their first 6 significant digits (each is reported as p<value>: {keys}); got {self.percentiles!r}")
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
         if self.delay not in DELAYS:
@@ -272,7 +275,7 @@ def run_montecarlo(
     if os.path.exists(meta_path):
         if not resume:
             raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume to continue it, or choose another --out")
-        _check_resume(meta_path, meta)
+        _check_resume(meta_path, meta, config.n_scenarios)
         # summary.json is rewritten at the end; until then the previous one would describe
         # another set of chunks.
         if os.path.exists(summary_path):
@@ -346,7 +349,7 @@ def _load_chunk(path: str, chunk: int, n_modes: int) -> dict[str, np.ndarray]:
     return rows
 
 
-def _check_resume(meta_path: str, meta: dict[str, Any]) -> None:
+def _check_resume(meta_path: str, meta: dict[str, Any], n_scenarios: int) -> None:
     """Refuse to resume a folder written by another configuration, naming what changed."""
     try:
         with open(meta_path, encoding="utf-8") as f:
@@ -359,9 +362,11 @@ def _check_resume(meta_path: str, meta: dict[str, Any]) -> None:
         what = f"changed: {', '.join(changed)}" if changed else "the configuration changed"
         raise ValueError(f"--resume: {meta_path} was written by a run with another configuration ({what})")
     if previous.get("chunk") != meta["chunk"]:
+        chunk = previous.get("chunk")
+        fix = f"--chunk {chunk}" if not isinstance(chunk, int) or n_scenarios >= chunk else f"--scenarios {chunk} or more and --chunk {chunk}"
         raise ValueError(
-            f"--resume: the run in {os.path.dirname(meta_path)} has chunks of {previous.get('chunk')} scenarios, this one {meta['chunk']} "
-            f"(a chunk is capped at the number of scenarios); pass --chunk {previous.get('chunk')}"
+            f"--resume: the run in {os.path.dirname(meta_path)} has chunks of {chunk} scenarios, this one {meta['chunk']} "
+            f"(a chunk is capped at the number of scenarios); pass {fix}"
         )
 
 

@@ -108,6 +108,9 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
         run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=15, seed=3, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
     with pytest.raises(ValueError, match="has chunks of 15 scenarios, this one 16 .*; pass --chunk 15"):
         run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=16, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
+    # fewer scenarios than the run's chunk cap the chunk whatever --chunk says: the fix names both
+    with pytest.raises(ValueError, match="has chunks of 15 scenarios, this one 14 .*; pass --scenarios 15 or more and --chunk 15"):
+        run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=14, chunk=15, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
     # a refused resume leaves the finished run's summary; an interrupted one removes it, since
     # it would describe the run before the resume
     assert (tmp_path / "cut" / "summary.json").exists()
@@ -193,6 +196,9 @@ def test_statistics_do_not_depend_on_the_device_count(tmp_path, full_run):
         (lambda: MCConfig(delay="sinc"), "delay must be one of"),
         (lambda: MCConfig(fuzzy_temperature=-0.1), "fuzzy_temperature must be a finite number >= 0"),
         (lambda: ScenarioSpec(horizon_s=float("nan")), "horizon_s must be a finite number"),
+        (lambda: MCConfig(percentiles=(5.0, 99.99999, 100.0)), r"percentiles must differ in their first 6 significant digits .*\['p5', 'p100', 'p100'\]"),
+        (lambda: ScenarioSpec(youngs_modulus_rel=1.0), r"youngs_modulus_rel must be in \[0, 1\); got 1.0"),
+        (lambda: ScenarioSpec(impulse_max_n=1.0, impulse_duration_s=5e-4), "impulse_duration_s must be >= dt = 0.001 s when impulses are on; got 0.0005"),
     ],
 )
 def test_impossible_descriptions_are_refused(make, match):
@@ -330,3 +336,57 @@ def test_statistics_leave_out_diverged_and_nonfinite_runs():
     assert (tip["count"], tip["nonfinite"], tip["mean"], tip["max"], tip["p50"]) == (2, 0, 2.0, 3.0, 2.0)
     settling = summary["metrics"]["settling_time_s"]
     assert (settling["count"], settling["nonfinite"], settling["mean"]) == (1, 1, 0.5)
+
+
+def test_statistics_at_the_ends_and_with_every_run_diverged():
+    """p0 and p100 are the min and the max; with no run left the keys are the same, all None."""
+    config = MCConfig(n_scenarios=4, percentiles=(0, 37.5, 100))
+    values = np.asarray([4.0, 1.0, 3.0, 2.0])
+    columns = {name: values for name in montecarlo.metric_names(config.n_modes)}
+    columns["diverged"] = np.zeros(4, bool)
+    tip = montecarlo.summarize(config, columns)["metrics"]["tip_ise"]
+    # sorted 1, 2, 3, 4: the 37.5th percentile is at position 0.375 * 3 = 1.125, between 2 and 3
+    assert (tip["p0"], tip["p37.5"], tip["p100"]) == (1.0, 2.125, 4.0)
+    columns["diverged"] = np.ones(4, bool)
+    gone = montecarlo.summarize(config, columns)["metrics"]["tip_ise"]
+    assert set(gone) == set(tip) and {k: v for k, v in gone.items() if k not in ("count", "nonfinite")} == dict.fromkeys(set(tip) - {"count", "nonfinite"})
+
+
+def test_cli_names_out_of_memory_and_lets_other_runtime_errors_through(tmp_path, monkeypatch, capsys):
+    from jaxflex import cli
+
+    def exhausted(args):
+        raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 4.00GiB\ndetails")
+
+    monkeypatch.setattr(cli, "_run", exhausted)
+    assert cli.main(["montecarlo", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == "jaxflex montecarlo: error: out of memory (RESOURCE_EXHAUSTED: Out of memory allocating 4.00GiB); lower the batch (--chunk, --scenarios) or the horizon (horizon_s)"
+
+    def other(args):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(cli, "_run", other)
+    with pytest.raises(RuntimeError, match="boom"):
+        cli.main(["montecarlo", "--out", str(tmp_path / "o")])
+    assert not (tmp_path / "o").exists()  # the folder it created, empty, is removed
+
+
+def test_cli_distributed_options_are_checked_before_anything_runs(tmp_path, capsys):
+    from jaxflex import cli
+
+    assert cli.main(["montecarlo", "--distributed", "--process-id", "-1", "--out", str(tmp_path / "o")]) == 2
+    assert "--process-id must be an integer >= 0; got -1" in capsys.readouterr().err
+    assert cli.main(["montecarlo", "--process-id", "0", "--out", str(tmp_path / "o")]) == 2
+    assert "--process-id only applies with --distributed" in capsys.readouterr().err
+
+
+def test_model_line_counts_the_modes_above_nyquist():
+    from jaxflex import cli
+    from jaxflex.beam import BeamParams, natural_frequencies_hz
+
+    freqs = np.asarray(natural_frequencies_hz(BeamParams(), 2), float)  # 13.3 and 36.5 Hz
+    assert freqs[0] < 25 < freqs[1]  # at dt = 0.02 s the Nyquist frequency, 25 Hz, lies between them
+    line = cli._model_line(BeamParams(), 2, 0.02)
+    assert line.endswith("(Nyquist 25 Hz); 1 mode(s) above Nyquist alias in what the controller measures")
+    assert "above Nyquist" not in cli._model_line(BeamParams(), 2, 1e-3)
