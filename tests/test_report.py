@@ -230,6 +230,34 @@ def test_atomic_writes_get_the_permissions_of_a_plain_write(tmp_path):
     assert stat.S_IMODE(atomic.stat().st_mode) == 0o640 and atomic.read_text() == "y"
 
 
+def test_replace_outputs_renames_last_last_and_removes_stale_owned_files(tmp_path, monkeypatch):
+    (tmp_path / "old_figure.png").write_text("stale")
+    (tmp_path / "notes.txt").write_text("the user's")
+    renamed = []
+    real_replace = os.replace
+    monkeypatch.setattr(fileio.os, "replace", lambda src, dst: (renamed.append(os.path.basename(dst)), real_replace(src, dst)))
+    with fileio.replace_outputs(tmp_path, owned=["old_figure.png", "a.png", "results.json", "z.md"], last="results.json") as stage:
+        for name in ("results.json", "z.md", "a.png"):
+            Path(stage, name).write_text(name)
+        assert sorted(os.listdir(tmp_path)) == sorted(["notes.txt", "old_figure.png", os.path.basename(stage)])
+    assert renamed[-1] == "results.json" and sorted(renamed) == ["a.png", "results.json", "z.md"]
+    assert sorted(os.listdir(tmp_path)) == ["a.png", "notes.txt", "results.json", "z.md"]
+
+
+def test_json_values_inside_tuples_are_converted(tmp_path):
+    fileio.write_json(tmp_path / "t.json", {"t": (float("inf"), np.float32(1.5), (np.int64(2),))})
+    assert json.loads((tmp_path / "t.json").read_text()) == {"t": [None, 1.5, [2]]}
+
+
+def test_atomic_writes_follow_the_umask(tmp_path):
+    old = os.umask(0o027)
+    try:
+        fileio.write_text(tmp_path / "new.md", "x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "new.md").stat().st_mode) == 0o640
+
+
 def test_readme_quick_start_matches_ci():
     readme = (ROOT / "README.md").read_text()
     quick_start = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]

@@ -64,3 +64,15 @@ def test_the_papers_scenario_is_member_zero():
     assert plant0 == [1.0, 1.0, 1.0, 0.0]
     assert sc.force[1:].any()
     assert sc.noise[1:].any()
+
+
+def test_a_payload_alone_perturbs_the_plant_and_adds_to_the_nominal_one():
+    from jaxflex.beam import BeamParams
+    from jaxflex.scenarios import PlantPerturbation, perturbed_params
+
+    spec = ScenarioSpec(horizon_s=0.01, payload_max_kg=0.03, include_paper=False)
+    p = sample_scenarios(spec, jax.random.key(2), 64, n_modes=2, dtype=np.float64).plant
+    assert p is not None and 0 < float(p.payload_mass_kg.min()) and float(p.payload_mass_kg.max()) <= 0.03
+    np.testing.assert_array_equal(np.asarray(p.youngs_modulus_scale), 1.0)
+    loaded = perturbed_params(BeamParams(payload_mass_kg=0.1), PlantPerturbation(1.0, 1.0, 1.0, 0.02))
+    assert loaded.payload_mass_kg == pytest.approx(0.12, rel=1e-15) and loaded.hub_inertia_kg_m2 == BeamParams().hub_inertia_kg_m2

@@ -2,6 +2,7 @@
 compile-once, resume equals an uninterrupted run, held-out improvement, and bad input."""
 
 import dataclasses
+import math
 import json
 
 import jax
@@ -210,11 +211,17 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
         tune(cfg, tmp_path / "cut", progress=False)  # never overwrite a run silently
     resumed = tune(cfg, tmp_path / "cut", resume=True, progress=False)
     assert resumed["step"] == full["step"] == 30
+    # validated at steps 0, eval_every, 2 eval_every, ... and at the last step
+    assert [h["step"] for h in full["history"] if h.get("val_objective") is not None] == [0, 5, 10, 15, 20, 25, 29]
     tree_allclose(resumed["raw"], full["raw"], rtol=0)
     tree_allclose(resumed["best_raw"], full["best_raw"], rtol=0)
     assert [h["loss"] for h in resumed["history"]] == [h["loss"] for h in full["history"]]
     with pytest.raises(ValueError, match=r"has taken 30 steps already; steps = 20 cannot undo them \(pass --steps 30 or more\)"):
         tune(dataclasses.replace(cfg, steps=20), tmp_path / "cut", resume=True, progress=False)
+    again = tune(cfg, tmp_path / "cut", resume=True, progress=False)  # a finished run resumed with its own steps: nothing to do
+    assert again["step"] == 30 and len(again["history"]) == 30
+    with pytest.raises(ValueError, match="--resume: no checkpoint at"):
+        tune(cfg, tmp_path / "empty", resume=True, progress=False)
     with pytest.raises(ValueError, match=r"another configuration \(changed: seed;"):
         tune(dataclasses.replace(cfg, seed=1), tmp_path / "cut", resume=True, progress=False)
     # another controller has other arrays: the configuration is compared before they are read,
@@ -240,6 +247,37 @@ def test_early_stop_after_patience_validations_without_improvement(tmp_path):
     assert vals[0] == state["best_val"] and len(vals) == 3  # row 0 holds the initial point's validation
     vals = vals[1:]
     assert vals[0] > state["best_val"] and vals[1] > state["best_val"]
+
+
+def test_patience_counts_validations_in_a_row_and_the_penalty_reads_the_delay(tmp_path, monkeypatch):
+    """Held-out values 5, 6, 4, 6, 6 with patience 2: the improvement at step 2 resets the
+    count, so the run stops after the validation at step 4 (a plain reading of the rule)."""
+    import tuning.tuner
+    from jaxflex.analysis import stability
+
+    script = iter([5.0, 6.0, 4.0, 6.0, 6.0, 6.0])
+    made = []
+
+    class Scripted(tuning.tuner.Problem):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            evaluate = self.evaluate
+            self.evaluate = lambda raw, batch: (jnp.float32(next(script)), None) if batch is self.heldout else evaluate(raw, batch)
+            made.append(self)
+
+    monkeypatch.setattr(tuning.tuner, "Problem", Scripted)
+    state = tune(TuneConfig(controller="dfs", steps=20, eval_every=1, patience=2, **SHARED), tmp_path, progress=False)
+    best, bad, stop_at = math.inf, 0, None
+    for step, val in enumerate([5.0, 6.0, 4.0, 6.0, 6.0]):
+        best, bad = (val, 0) if val < best else (best, bad + 1)
+        if bad >= 2:
+            stop_at = step + 1
+            break
+    assert state["stopped_early"] and state["step"] == stop_at == 5 and state["best_step"] == 2
+    # the stability penalty's radius is that of the loop at the delay asked for (5 samples)
+    problem = made[0]
+    expected = np.log(float(stability.spectral_radius(problem.nominal, 55.0, 5)))
+    assert float(problem.dfs_log_radius(DFSParams(55.0, 0.005))) == pytest.approx(expected, rel=1e-5)
 
 
 @pytest.mark.parametrize("controller", ["dfs", "fuzzy"])
