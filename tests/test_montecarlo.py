@@ -131,6 +131,10 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     np.savez(chunk, tip_ise=np.zeros(15))
     with pytest.raises(ValueError, match=r"chunk_000003.npz does not hold this run's 15-scenario columns \(tip_ise \(15,\)\)"):
         run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
+    names = [*montecarlo.metric_names(config.n_modes), "diverged"]
+    np.savez(chunk, **{name: np.zeros(14) for name in names})  # every column, one row short
+    with pytest.raises(ValueError, match=r"chunk_000003.npz does not hold this run's 15-scenario columns \(.*tip_ise \(14,\)"):
+        run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
     # chunks without montecarlo.json cannot be matched to a configuration: a new run would
     # have taken them as its own
     (tmp_path / "cut" / "montecarlo.json").unlink()
@@ -390,3 +394,13 @@ def test_model_line_counts_the_modes_above_nyquist():
     line = cli._model_line(BeamParams(), 2, 0.02)
     assert line.endswith("(Nyquist 25 Hz); 1 mode(s) above Nyquist alias in what the controller measures")
     assert "above Nyquist" not in cli._model_line(BeamParams(), 2, 1e-3)
+
+
+def test_the_dtype_is_part_of_a_runs_fingerprint():
+    """A float32 run's chunks are not resumed under --x64 (nor the other way round)."""
+    config = MCConfig(n_scenarios=3)
+    with jax.enable_x64(False):
+        f32 = config.fingerprint_fields(), config.fingerprint()
+    with jax.enable_x64(True):
+        f64 = config.fingerprint_fields(), config.fingerprint()
+    assert (f32[0]["dtype"], f64[0]["dtype"]) == ("float32", "float64") and f32[1] != f64[1]
