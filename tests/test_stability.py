@@ -504,3 +504,82 @@ def test_root_velocities_match_finite_differences_of_the_roots(plant, crit):
     h = 1e-3 * zero.tau_s  # Delta / s loses digits near 0 (4e-7 at tau_0): a wider step keeps the roots above that
     up, down = (_root_near(plant, -55.0, zero.tau_s + d, 1e-9, deflate=True) for d in (h, -h))
     np.testing.assert_allclose(zero.dsdtau, ((up - down) / (2 * h)).real, rtol=1e-4)
+
+
+# ---------------------------------------------------------------------------------------------
+# The report's derived numbers and default chart grid, against independent rules
+
+
+def _numpy_loop_radius(dplant, k, d):
+    """Spectral radius of the sampled DFS loop built here in NumPy: xi = [x, theta_{k-1..k-d}],
+    u = -k (c x - theta_{k-d}); the structural eigenvalue nearest 1 is removed."""
+    Ad, Bd, c = (np.asarray(a, np.float64) for a in (dplant.Ad, dplant.Bd, dplant.C[:1]))
+    n = Ad.shape[0]
+    m = np.zeros((n + d, n + d))
+    m[:n, :n] = Ad - k * Bd @ c
+    m[:n, n + d - 1] = k * Bd[:, 0]  # theta_{k-d} is the last history slot
+    m[n, :n] = c[0]  # theta_k enters the history
+    for i in range(1, d):
+        m[n + i, n + i - 1] = 1.0  # the history shifts by one sample
+    eig = np.linalg.eigvals(m)
+    return float(np.max(np.abs(np.delete(eig, np.argmin(np.abs(eig - 1))))))
+
+
+@pytest.fixture(scope="module")
+def coarse_report(tmp_path_factory):
+    """One report at dt = 4 ms (RK4 and ZOH loops differ visibly there), default chart range."""
+    return stability_report.run(tmp_path_factory.mktemp("coarse"), tau_s=0.008, dt=0.004, n_k=2, n_tau=2, n_cheb=16)
+
+
+def test_report_default_chart_grid(coarse_report):
+    """Default k range [0, 3 k] = [0, 165]; default tau top max(8 tau, 40 ms, 20 dt) = 20 * 4 ms = 0.08 s."""
+    chart = coarse_report["chart"]
+    assert chart["k_range"] == [0.0, 3 * PAPER_K]
+    np.testing.assert_allclose(chart["tau_range_s"], [0.004, 20 * 0.004], rtol=1e-12)
+
+
+def test_report_other_method_radius_is_the_rk4_loop(coarse_report):
+    """spectral_radius_rk4 (method zoh reports RK4 alongside) is the RK4-sampled loop's radius,
+    and spectral_radius the ZOH one's, each rebuilt in NumPy (d = 2 samples)."""
+    plant = make_plant(n_modes=2)
+    rk4 = _numpy_loop_radius(discretize(plant, 0.004, "rk4"), PAPER_K, 2)
+    zoh = _numpy_loop_radius(discretize(plant, 0.004, "zoh"), PAPER_K, 2)
+    assert abs(rk4 - zoh) > 1e-3  # the check below can tell the two apart
+    np.testing.assert_allclose(coarse_report["spectral_radius_rk4"], rk4, rtol=1e-10)
+    np.testing.assert_allclose(coarse_report["spectral_radius"], zoh, rtol=1e-10)
+
+
+def test_report_rightmost_frequency_is_imag_over_two_pi(coarse_report):
+    root = coarse_report["rightmost_root"]
+    assert abs(root["imag"]) > 1.0  # an oscillating root, so the frequency is not trivially 0
+    assert root["freq_hz"] == pytest.approx(abs(root["imag"]) / (2 * np.pi), rel=1e-12)
+
+
+def test_report_validation_brackets_the_first_delay_by_one_percent(coarse_report):
+    first = st.first_destabilising_delay(PAPER_K, 2)
+    v = coarse_report["first_destabilising_validation"]
+    assert v["tau_below_s"] == pytest.approx(0.99 * first, rel=1e-12)
+    assert v["tau_above_s"] == pytest.approx(1.01 * first, rel=1e-12)
+
+
+def test_report_stable_fractions_count_the_grid(coarse_report):
+    """Chart grid k in {0, 165}, tau in {4, 80} ms. Sampled: NumPy loop radii < 1. Continuous:
+    at k = 0 the open loop's non-structural roots; at k = 165 the crossing count (stability switches)."""
+    plant = make_plant(n_modes=2)
+    dplant = discretize(plant, 0.004, "zoh")
+    sampled = [_numpy_loop_radius(dplant, k, d) < 1 for k in (0.0, 3 * PAPER_K) for d in (1, 20)]
+    lam = np.linalg.eigvals(np.asarray(plant.A))
+    open_stable = bool(np.all(np.delete(lam, np.argmin(np.abs(lam))).real < 0))
+    counts = st.unstable_root_count(st.critical_delays(plant, 3 * PAPER_K, 0.1), np.array([0.004, 0.08]))
+    continuous = [open_stable, open_stable] + [bool(c == 0) for c in counts]
+    assert np.mean(sampled) != np.mean(continuous)  # the two fractions can be told apart
+    assert coarse_report["chart"]["stable_fraction_sampled"] == pytest.approx(np.mean(sampled), abs=1e-12)
+    assert coarse_report["chart"]["stable_fraction_continuous"] == pytest.approx(np.mean(continuous), abs=1e-12)
+
+
+def test_report_chart_rows_are_whole_samples_capped_at_80(tmp_path):
+    """tau_max_s = 0.087 at dt = 1 ms is 87 samples (0.087 / 0.001 rounds to 86.999...): the
+    chart tops out at 0.087 s, and its rows are capped at 80."""
+    result = stability_report.run(tmp_path, tau_max_s=0.087, n_k=2, n_cheb=16)
+    assert result["chart"]["n_tau"] == 80
+    np.testing.assert_allclose(result["chart"]["tau_range_s"], [0.001, 0.087], rtol=1e-12)

@@ -518,3 +518,60 @@ def test_readme_config_example_is_a_valid_config(tmp_path):
     cfg = TuneConfig.from_mapping(fileio.read_toml(path))
     assert cfg.controller == "dfs+fuzzy" and cfg.objective.reduction == "cvar" and cfg.scenarios.payload_max_kg == 0.05
     assert cfg.beam == BeamParams(length_m=0.6, thickness_m=4e-3, hub_inertia_kg_m2=2e-3, payload_mass_kg=0.1)
+
+
+def test_objective_spec_refuses_bad_weights_and_levels_by_name():
+    """All-zero term weights, cvar_level = 1 (the interval is [0, 1)) and a negative stability
+    weight are refused, each naming what is wrong; the edge values that are allowed pass."""
+    with pytest.raises(ValueError, match="at least one objective weight"):
+        ObjectiveSpec(tip_ise=0.0, hub_ise=0.0, effort=0.0, vibration=0.0)
+    with pytest.raises(ValueError, match="cvar_level"):
+        ObjectiveSpec(cvar_level=1.0)
+    with pytest.raises(ValueError, match="stability_weight"):
+        ObjectiveSpec(stability_weight=-1.0)
+    assert ObjectiveSpec(tip_ise=0.0, vibration=0.5, cvar_level=0.0, stability_weight=0.0).cvar_level == 0.0
+
+
+def test_dfs_transform_accepts_tau_at_both_ends():
+    """tau in [dt, capacity dt] closed: both ends pass check_tau, and to_raw maps them to
+    finite raw values (the fraction is clipped inside (0, 1)) that map back near the ends."""
+    from tuning.transforms import check_tau, tuned_controller
+
+    dt, capacity = 1e-3, 32
+    check_tau(dt, dt, capacity)
+    check_tau(capacity * dt, dt, capacity)
+    with pytest.raises(ValueError, match="tau_s"):
+        check_tau(0.5 * dt, dt, capacity)
+    t = tuned_controller("dfs", dt=dt, capacity=capacity)
+    for tau in (dt, capacity * dt):
+        raw = t.to_raw(DFSParams(55.0, tau))
+        assert np.isfinite(float(raw["tau_z"])) and np.isfinite(float(raw["log_k"]))
+        back = t.to_physical(raw)
+        assert float(back.tau_s) == pytest.approx(tau, rel=1e-4)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
+def test_fuzzy_transform_refuses_nonpositive_gains_by_name(bad):
+    from jaxflex.controllers.fuzzy import fuzzy_params
+    from tuning.transforms import tuned_controller
+
+    t = tuned_controller("fuzzy")
+    with pytest.raises(ValueError, match="k1 must be finite and > 0"):
+        t.to_raw(fuzzy_params()._replace(k1=bad))
+
+
+def test_dfs_plus_fuzzy_transform_keeps_the_pade_delay():
+    """A dfs+fuzzy transform built with delay="pade" rolls out as by_name("dfs+fuzzy",
+    delay="pade") (same Pade order), not as the linear-interpolation delay."""
+    from jaxflex.controllers import by_name
+    from tuning.transforms import tuned_controller
+
+    plant = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")
+    sc = jf.paper_scenario(plant, horizon_s=0.1)
+    pade = tuned_controller("dfs+fuzzy", dt=1e-3, capacity=16, delay="pade", pade_order=4)
+    linear = tuned_controller("dfs+fuzzy", dt=1e-3, capacity=16, delay="linear")
+    ref_ctrl, ref_params = by_name("dfs+fuzzy", dt=1e-3, capacity=16, delay="pade", pade_order=4)
+    run = lambda c, p: np.asarray(jf.rollout(plant, c, p, sc).x)
+    got = run(pade.controller, pade.paper)
+    np.testing.assert_allclose(got, run(ref_ctrl, ref_params), rtol=1e-12, atol=1e-15)
+    assert np.max(np.abs(got - run(linear.controller, linear.paper))) > 1e-6 * np.max(np.abs(got))
