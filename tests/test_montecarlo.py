@@ -174,6 +174,9 @@ def test_statistics_do_not_depend_on_the_device_count(tmp_path, full_run):
         assert f"on {devices} device(s)" in out.stdout
         results[devices] = json.loads((out_dir / "summary.json").read_text())
     assert results[1]["devices"] == 1 and results[4]["devices"] == 4
+    # 15 scenarios per chunk on 4 devices run padded to 16: the chunk files hold the 15 alone
+    with np.load(tmp_path / "d4" / "chunks" / "chunk_000000.npz") as chunk:
+        assert {chunk[name].shape for name in chunk.files} == {(15,)}
     assert results[1]["diverged_fraction"] == results[4]["diverged_fraction"]
     for name, stats in results[1]["metrics"].items():
         for key, value in stats.items():
