@@ -203,7 +203,8 @@ def _run(args: argparse.Namespace) -> int:
         print(_reproduce_summary(results))
         tuned = results.get("tuned")
         if tuned and tuned["tuned_for"]:
-            print(f"note: {args.params} was tuned for {', '.join(tuned['tuned_for'])}; its gains ran here on the paper's arm, {results['model']['n_modes']} modes, RK4 at 1 ms (see report.md)")
+            model = results["model"]
+            print(f"note: {args.params} was tuned for {', '.join(tuned['tuned_for'])}; its gains ran here on the paper's arm, {model['n_modes']} modes, {model['integrator'].upper()} at {model['dt_s'] * 1e3:g} ms (see report.md)")
         print(f"wrote {args.out}/results.json, {args.out}/report.md and figures in {args.out}/ ({time.perf_counter() - start:.1f} s)")
         return 0
     if args.command == "tune":
