@@ -130,12 +130,14 @@ class MCConfig:
 
     def fingerprint_fields(self) -> dict[str, Any]:
         """What a resumed run must share with the folder, as plain JSON values: everything but
-        ``n_scenarios`` (more may be asked of a resumed run) and ``chunk`` (the folder records
-        the chunk it was run with), and the dtype."""
+        ``n_scenarios`` (more may be asked of a resumed run), ``chunk`` (the folder records
+        the chunk it was run with) and what only the summary and the figures read from the
+        stored rows (``percentiles``, ``band_scenarios``: a resume may ask for others), and the
+        dtype."""
         d = dataclasses.asdict(self)
         d["beam"] = self.beam._asdict()
-        d.pop("n_scenarios")
-        d.pop("chunk")
+        for name in ("n_scenarios", "chunk", "percentiles", "band_scenarios"):
+            d.pop(name)
         d["dtype"] = str(jnp.zeros(()).dtype)
         return json.loads(json.dumps(fileio.to_jsonable(d)))
 

@@ -1,6 +1,7 @@
 """Monte Carlo: statistics against NumPy on the same rollouts, device-count independence,
 resume equals an uninterrupted run, and refusal of impossible descriptions."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 import jaxflex as jf
-from jaxflex import beam, montecarlo
+from jaxflex import beam, montecarlo, plotting
 from jaxflex.controllers import OpenLoopParams, open_loop
 from jaxflex.beam import BeamParams
 from jaxflex.montecarlo import MCConfig, controller_and_params, run_montecarlo
@@ -21,7 +22,7 @@ from jaxflex.scenarios import ScenarioSpec, sample_scenarios
 SPEC = ScenarioSpec(horizon_s=0.3, impulse_max_n=0.5, youngs_modulus_rel=0.1, noise_angle_rad=1e-6)
 
 
-def test_summary_matches_direct_rollouts(tmp_path):
+def test_summary_matches_direct_rollouts(tmp_path, monkeypatch):
     config = MCConfig(controller="dfs", n_scenarios=50, chunk=32, scenarios=SPEC, percentiles=(10.0, 50.0, 90.0))
     summary = run_montecarlo(config, tmp_path, progress=False)
     assert summary["n_scenarios"] == 50
@@ -67,6 +68,24 @@ def test_summary_matches_direct_rollouts(tmp_path):
     assert saved["metrics"]["reduction_db_mode1"]["p10"] > 0  # DFS damps the first mode in nearly every scenario
     for name in saved["figures"]:
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
+    # other percentiles and band scenarios are read from the stored rows on resume, with no
+    # chunk run again; the band figure always draws the median, asked for or not
+    def no_rerun(*args):
+        raise AssertionError("a chunk was run again")
+
+    drawn, real_bands = {}, plotting.percentile_bands
+
+    def bands(t, values, percentiles, ylabel, title):
+        drawn.update(percentiles=list(percentiles), title=title)
+        return real_bands(t, values, percentiles, ylabel, title)
+
+    monkeypatch.setattr(montecarlo._Runner, "run_chunk", no_rerun)
+    monkeypatch.setattr(plotting, "percentile_bands", bands)
+    again = run_montecarlo(dataclasses.replace(config, percentiles=(5.0, 99.0), band_scenarios=8), tmp_path, resume=True, progress=False)
+    stats = again["metrics"]["peak_tip_deflection_m"]
+    np.testing.assert_allclose([stats["p5"], stats["p99"]], np.percentile(peaks, [5, 99]), rtol=1e-10)
+    assert "p50" not in stats and again["percentiles"] == [5.0, 99.0]
+    assert drawn["percentiles"] == [5.0, 50.0, 99.0] and "over 8 of 8 scenarios" in drawn["title"]
 
 
 def test_diverged_runs_are_counted_not_averaged(tmp_path):
