@@ -211,15 +211,15 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
         tune(cfg, tmp_path / "cut", progress=False)  # never overwrite a run silently
     resumed = tune(cfg, tmp_path / "cut", resume=True, progress=False)
     assert resumed["step"] == full["step"] == 30
-    # validated at steps 0, eval_every, 2 eval_every, ... and at the last step
-    assert [h["step"] for h in full["history"] if h.get("val_objective") is not None] == [0, 5, 10, 15, 20, 25, 29]
+    # validated at steps 0, eval_every, 2 eval_every, ... and at the final point, after the last update
+    assert [h["step"] for h in full["history"] if h.get("val_objective") is not None] == [0, 5, 10, 15, 20, 25, 30]
     tree_allclose(resumed["raw"], full["raw"], rtol=0)
     tree_allclose(resumed["best_raw"], full["best_raw"], rtol=0)
     assert [h["loss"] for h in resumed["history"]] == [h["loss"] for h in full["history"]]
     with pytest.raises(ValueError, match=r"has taken 30 steps already; steps = 20 cannot undo them \(pass --steps 30 or more\)"):
         tune(dataclasses.replace(cfg, steps=20), tmp_path / "cut", resume=True, progress=False)
     again = tune(cfg, tmp_path / "cut", resume=True, progress=False)  # a finished run resumed with its own steps: nothing to do
-    assert again["step"] == 30 and len(again["history"]) == 30
+    assert again["step"] == 30 and len(again["history"]) == 31
     with pytest.raises(ValueError, match="--resume: no checkpoint at"):
         tune(cfg, tmp_path / "empty", resume=True, progress=False)
     with pytest.raises(ValueError, match=r"another configuration \(changed: seed;"):
@@ -280,6 +280,31 @@ def test_patience_counts_validations_in_a_row_and_the_penalty_reads_the_delay(tm
     assert float(problem.dfs_log_radius(DFSParams(55.0, 0.005))) == pytest.approx(expected, rel=1e-5)
 
 
+def test_the_final_point_is_scored_and_may_be_kept(tmp_path, monkeypatch):
+    """Held-out values 5 (step 0) then 4 (the parameters after the last of 3 updates, off the
+    eval_every schedule): the final point is kept. Resumed with more steps, that point becomes
+    an ordinary row and the run goes on to its new final point, with each step once."""
+    import tuning.tuner
+
+    script = iter([5.0, 4.0, 3.0, 2.0])
+
+    class Scripted(tuning.tuner.Problem):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            evaluate = self.evaluate
+            self.evaluate = lambda raw, batch: (jnp.float32(next(script)), None) if batch is self.heldout else evaluate(raw, batch)
+
+    monkeypatch.setattr(tuning.tuner, "Problem", Scripted)
+    config = TuneConfig(controller="dfs", steps=3, eval_every=10, **SHARED)
+    state = tune(config, tmp_path, progress=False)
+    assert [(h["step"], h.get("val_objective")) for h in state["history"]] == [(0, 5.0), (1, None), (2, None), (3, 4.0)]
+    assert state["best_step"] == 3 and state["step"] == 3 and not state["stopped_early"]
+    tree_allclose(state["best_raw"], state["raw"], rtol=0)
+    longer = tune(dataclasses.replace(config, steps=5), tmp_path, resume=True, progress=False)
+    assert [(h["step"], h.get("val_objective")) for h in longer["history"]] == [(0, 5.0), (1, None), (2, None), (3, None), (4, None), (5, 3.0)]
+    assert longer["best_step"] == 5 and "grad_norm" in longer["history"][3]
+
+
 @pytest.mark.parametrize("controller", ["dfs", "fuzzy"])
 def test_tuning_lowers_heldout_objective(tuned, controller):
     cfg, out_dir, state = tuned(controller)
@@ -291,11 +316,14 @@ def test_tuning_lowers_heldout_objective(tuned, controller):
     if controller == "dfs":
         assert summary["stability"]["stable"] and summary["stability"]["decay_rate_per_s"] > cfg.objective.min_decay_rate
     assert set(summary["params"]) == ({"k", "tau_s"} if controller == "dfs" else {"k1", "k2", "k3"})
-    assert (out_dir / "history.csv").read_text().count("\n") == summary["steps_run"] + 1
+    assert (out_dir / "history.csv").read_text().count("\n") == summary["steps_run"] + 2
     # Each history row is one point: row n holds the parameters after n updates (the initial
-    # ones in row 0) and the objectives there (the loss once sat beside the next parameters).
+    # ones in row 0, the final ones in the last row) and the objectives there (the loss once
+    # sat beside the next parameters).
     problem, rows, names = state["problem"], state["history"], list(summary["params"])
-    assert [h["step"] for h in rows] == list(range(summary["steps_run"]))
+    assert [h["step"] for h in rows] == list(range(summary["steps_run"] + 1))
+    assert "grad_norm" not in rows[-1] and all("grad_norm" in h for h in rows[:-1])  # no update from the final point
+    assert [rows[-1][n] for n in names] == pytest.approx(list(problem.tc.named(problem.tc.to_physical(state["raw"])).values()), rel=1e-12)
     assert [rows[0][n] for n in names] == pytest.approx([summary["initial_params"][n] for n in names], rel=1e-12)
     for row in (rows[0], next(h for h in rows if h.get("val_objective") is not None), rows[-1]):
         raw = problem.tc.to_raw(problem.tc.from_named({n: row[n] for n in names}))

@@ -291,8 +291,8 @@ def tune(
       resume: continue from ``out_dir/checkpoint.npz`` (an error if it is missing or was made
         with another configuration). An interrupted run ends as the uninterrupted one would.
         A finished run resumed with more ``steps`` goes on, but is not quite one longer run:
-        its last step was validated (every run validates its last step), which may have
-        moved the best parameters and the early-stopping count.
+        its final point was validated (every run scores the parameters after its last update),
+        which may have moved the best parameters and the early-stopping count.
       progress: show a tqdm progress bar with the loss and the validation objective.
       on_step: called with the step number after each step (tests use it to interrupt).
       optimizer: any optax GradientTransformation (default Adam at ``config.learning_rate``);
@@ -352,43 +352,55 @@ def tune(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=config.steps, initial=min(state["step"], config.steps), desc=f"tune {config.controller}", unit="step")
+    history = state["history"]
+    if history and history[-1]["step"] == state["step"] < config.steps:
+        # a finished run resumed with more steps: its final point becomes an ordinary one
+        history.pop()
     try:
-        while state["step"] < config.steps and not state["stopped_early"]:
+        while not state["stopped_early"] and not (history and history[-1]["step"] == config.steps):
             # Each history row is one point: the parameters after `step` updates, the training
             # objective and gradient norm there (from which the next update is taken), and
-            # every eval_every updates the held-out objective there.
+            # every eval_every updates the held-out objective there. The final point, after
+            # the last update, is scored (training and held-out objectives) but not updated.
             at, n = state["raw"], state["step"]
-            raw, opt_state, info = problem.train_step(at, state["opt_state"], problem.train)
-            loss, grad_norm = float(info["loss"]), float(info["grad_norm"])
-            if not (math.isfinite(loss) and math.isfinite(grad_norm)):
-                what = f"the objective became {loss}" if not math.isfinite(loss) else f"the gradient norm became {grad_norm}"
-                kept = f"the last checkpoint in {out_dir} is kept" if os.path.exists(ckpt_path) else f"no checkpoint was written yet (every {config.checkpoint_every} steps)"
-                raise ValueError(f"{what} at step {state['step'] + 1}: lower learning_rate or clip_norm, or check the scenarios; {kept}")
-            state["raw"], state["opt_state"], state["step"] = raw, opt_state, n + 1
+            final = n == config.steps
+            if final:
+                value, aux = problem.evaluate(at, problem.train)
+                info = {"loss": value, **aux}
+            else:
+                raw, opt_state, info = problem.train_step(at, state["opt_state"], problem.train)
+                loss, grad_norm = float(info["loss"]), float(info["grad_norm"])
+                if not (math.isfinite(loss) and math.isfinite(grad_norm)):
+                    what = f"the objective became {loss}" if not math.isfinite(loss) else f"the gradient norm became {grad_norm}"
+                    kept = f"the last checkpoint in {out_dir} is kept" if os.path.exists(ckpt_path) else f"no checkpoint was written yet (every {config.checkpoint_every} steps)"
+                    raise ValueError(f"{what} at step {state['step'] + 1}: lower learning_rate or clip_norm, or check the scenarios; {kept}")
+                state["raw"], state["opt_state"], state["step"] = raw, opt_state, n + 1
             row = {"step": n, **{k: float(v) for k, v in info.items()}}
             row.update(problem.tc.named(problem.tc.to_physical(at)))
-            if n % config.eval_every == 0 or n + 1 == config.steps:
+            if n % config.eval_every == 0 or final:
                 val = float(problem.evaluate(at, problem.heldout)[0])
                 row["val_objective"] = val
                 if val < state["best_val"]:
                     state["best_val"], state["best_raw"], state["best_step"], state["bad_evals"] = val, at, n, 0
                 else:
                     state["bad_evals"] += 1
-                    state["stopped_early"] = state["bad_evals"] >= config.patience
-            state["history"].append(row)
+                    state["stopped_early"] = state["bad_evals"] >= config.patience and not final
+            history.append(row)
+            if final:
+                continue
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.4g}", best_val=f"{state['best_val']:.4g}")
             if state["step"] % config.checkpoint_every == 0:
                 _save_checkpoint(ckpt_path, state)
-                fileio.write_text(os.path.join(out_dir, "history.csv"), _history_csv(state["history"], names))
+                fileio.write_text(os.path.join(out_dir, "history.csv"), _history_csv(history, names))
             if on_step is not None:
                 on_step(state["step"])
     finally:
         if bar is not None:
             bar.close()
     _save_checkpoint(ckpt_path, state)
-    fileio.write_text(os.path.join(out_dir, "history.csv"), _history_csv(state["history"], names))
+    fileio.write_text(os.path.join(out_dir, "history.csv"), _history_csv(history, names))
     state["problem"] = problem
     state["names"] = names
     return state
