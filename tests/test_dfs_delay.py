@@ -215,3 +215,17 @@ def test_traced_tau_outside_the_buffer_is_not_clamped(jitted, plant2):
     sc = paper_scenario(plant2, horizon_s=STEPS * DT)
     metrics = jax.jit(lambda t: jf.rollout(plant2, dfs(DT), DFSParams(K, t), sc, output="metrics"))
     assert bool(metrics(0.5).diverged) and not bool(metrics(0.005).diverged)
+
+
+def test_traced_fractional_tau_with_nearest_reads_is_not_rounded(plant2):
+    """check() refuses a nearest-sample DFS delay between samples; under jit (the README's
+    tour, with a tuned 2.44 ms at 1 ms) it used to be rounded to a whole sample silently, and
+    is NaN instead. Whole delays, float32's 4.9999995 samples among them, still run."""
+    sc = paper_scenario(plant2, horizon_s=STEPS * DT)
+    metrics = jax.jit(lambda t: jf.rollout(plant2, dfs(DT), DFSParams(K, t), sc, output="metrics"))
+    for tau in (0.00244, 0.0055, 0.0049):
+        assert bool(metrics(tau).diverged), tau
+    for tau in (0.005, np.float32(0.005), 0.001, 0.064):
+        assert not bool(metrics(tau).diverged), tau
+    linear = jax.jit(lambda t: jf.rollout(plant2, dfs(DT, interpolation="linear"), DFSParams(K, t), sc, output="metrics"))
+    assert not bool(linear(0.00244).diverged)

@@ -10,7 +10,8 @@ chosen by ``approximation``):
 
 * ``"buffer"`` (default): a ring buffer (:mod:`jaxflex.delay`) of static capacity. With
   ``interpolation="nearest"`` tau must be a whole number of samples (checked on concrete
-  parameters; a traced tau, under ``jit`` or ``vmap``, is read at the nearest sample);
+  parameters; a traced tau that is not, under ``jit`` or ``vmap``, gives a NaN torque, so the
+  run reports itself diverged instead of running with the delay rounded);
   ``"linear"`` and ``"cubic"`` read between samples, so tau is a differentiable parameter,
   up to ``capacity * dt``.
 * ``"pade"``: the ``[N/N]`` Pade approximant of ``e^{-s tau}`` (:mod:`jaxflex.pade`), sampled
@@ -84,7 +85,8 @@ def dfs(
         Used by ``approximation="buffer"`` only. ``check`` refuses a concrete tau outside
         ``(0, capacity dt]``; a traced one there (under ``jit``) gives a NaN torque, so the
         run reports itself diverged instead of running with a clamped delay.
-      interpolation: buffer reads: ``"nearest"`` (tau a whole number of samples),
+      interpolation: buffer reads: ``"nearest"`` (tau a whole number of samples; a traced
+        tau between samples gives a NaN torque, as one outside the buffer does),
         ``"linear"`` or ``"cubic"`` (see :mod:`jaxflex.delay`). Unused with ``"pade"``.
       approximation: ``"buffer"`` (ring buffer) or ``"pade"`` (Pade filter states; see the
         module docstring).
@@ -125,6 +127,8 @@ def dfs(
         steps = params.tau_s / dt
         state, theta_delayed = delay.delay_step(state, theta, steps, interpolation)
         held = (steps > 0) & (steps <= capacity * (1 + _WHOLE_SAMPLE_RTOL))
+        if interpolation == "nearest":
+            held = held & (jnp.abs(steps - jnp.round(steps)) <= _WHOLE_SAMPLE_RTOL * jnp.maximum(1.0, steps))
         return state, jnp.where(held, -params.k * (theta - theta_delayed), jnp.nan)
 
     def check(params: DFSParams) -> None:
