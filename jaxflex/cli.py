@@ -205,6 +205,8 @@ def _run(args: argparse.Namespace) -> int:
         if tuned and tuned["tuned_for"]:
             model = results["model"]
             print(f"note: {args.params} was tuned for {', '.join(tuned['tuned_for'])}; its gains ran here on the paper's arm, {model['n_modes']} modes, {model['integrator'].upper()} at {model['dt_s'] * 1e3:g} ms (see report.md)")
+        if tuned and tuned["run"]["diverged"]:
+            print(f"note: the tuned {tuned['controller']} gains of {args.params} diverge on the paper scenario (see report.md)")
         print(f"wrote {args.out}/results.json, {args.out}/report.md and figures in {args.out}/ ({time.perf_counter() - start:.1f} s)")
         return 0
     if args.command == "tune":
@@ -245,7 +247,7 @@ def _reproduce_summary(results: dict) -> str:
     def modes(count: int) -> str:
         return ", ".join(str(i + 1) for i in range(count))
 
-    freqs = ", ".join(f"{f:.2f}" for f in results["model"]["natural_frequencies_hz"][:2])
+    freqs = ", ".join(f"{f:.2f}" for f in results["model"]["natural_frequencies_hz"])
     paper_freqs = ", ".join(f"{f:g}" for f in PAPER["natural_frequencies_hz"])
     db = results["vibration_reduction_db"]
     names = {"dfs": "DFS", "fuzzy": "fuzzy"}

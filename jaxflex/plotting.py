@@ -51,18 +51,25 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
     fig, axes = plt.subplots(len(signals), 1, figsize=(7.5, 2.6 * len(signals)), sharex=True, squeeze=False)
     styles = _styles(list(runs))
     for ax, (name, ylabel) in zip(axes[:, 0], signals):
-        settled = []  # the values of the runs that did not diverge
-        for run, sig in runs.items():
-            values = np.asarray(sig[name])
-            n = _finite_prefix(values)
-            label = LABELS.get(run, run) + (" (diverged)" if diverged.get(run, False) else "")
-            ax.plot(t[:n], values[:n], label=label, **styles[run])
-            if not diverged.get(run, False):
-                settled.append(values[:n])
-        if settled and len(settled) < len(runs) and any(v.size for v in settled):
-            lo, hi = min(np.min(v) for v in settled if v.size), max(np.max(v) for v in settled if v.size)
+        values = {run: np.asarray(sig[name]) for run, sig in runs.items()}
+        ends = {run: _finite_prefix(v) for run, v in values.items()}
+        # the axes hold the runs that did not diverge; a diverged one is drawn until it leaves
+        # them (its growing swings would cross them at every sample and fill them)
+        settled = [v[: ends[run]] for run, v in values.items() if not diverged.get(run, False) and ends[run]]
+        limits = None
+        if settled and len(settled) < len(runs):
+            lo, hi = min(np.min(v) for v in settled), max(np.max(v) for v in settled)
             pad = 0.1 * (hi - lo) or 1e-12
-            ax.set_ylim(lo - pad, hi + pad)
+            limits = (lo - pad, hi + pad)
+        for run, v in values.items():
+            n = ends[run]
+            if limits is not None and diverged.get(run, False):
+                outside = np.flatnonzero((v[:n] < limits[0]) | (v[:n] > limits[1]))
+                n = int(outside[0]) + 1 if outside.size else n
+            label = LABELS.get(run, run) + (" (diverged)" if diverged.get(run, False) else "")
+            ax.plot(t[:n], v[:n], label=label, **styles[run])
+        if limits is not None:
+            ax.set_ylim(*limits)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc="upper right", fontsize=8)

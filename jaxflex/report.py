@@ -11,6 +11,7 @@ interrupted before that leaves the folder as it was.
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 from typing import Any, Callable, NamedTuple
@@ -79,6 +80,12 @@ def format_value(v: Any, spec: str = ".4g") -> str:
     return format(v, spec)
 
 
+def _settling(v: float | None) -> str:
+    """A settling time for the report: +inf (still outside the band at the end) is said so,
+    rather than shown as the ``n/a`` of a diverged run."""
+    return "not settled" if v == math.inf else f"{format_value(v, '.3f')} s"
+
+
 def _report_md(results: dict[str, Any]) -> str:
     model = results["model"]
     runs = results["runs"]
@@ -131,8 +138,8 @@ def _report_md(results: dict[str, Any]) -> str:
             lines.append(f"| {label} | all | | diverged | diverged | the closed loop diverged |")
             continue
         lines.append(
-            f"| {label} | settling time | {p['settling_time_s']} s | {format_value(r['q1']['settling_time_s'], '.3f')} s | "
-            f"{format_value(r['tip_deflection_m']['settling_time_s'], '.3f')} s | 2 % band around the final value (README) |"
+            f"| {label} | settling time | {p['settling_time_s']} s | {_settling(r['q1']['settling_time_s'])} | "
+            f"{_settling(r['tip_deflection_m']['settling_time_s'])} | 2 % band around the final value (README) |"
         )
         lines.append(
             f"| {label} | range | {p['min']} .. {p['max']} m | {format_value(r['q1']['min'])} .. {format_value(r['q1']['max'])} | "
@@ -155,8 +162,11 @@ def _report_md(results: dict[str, Any]) -> str:
         for m in range(len(results["vibration_reduction_db"][run])):
             vals = " | ".join(format_value(results["vibration_reduction_db_by_estimator"][name][run][m], ".1f") for name in names)
             q1 = format_value(results["vibration_reduction_db_q1"][run][m], ".1f")
-            lines.append(f"| {plotting.LABELS[run]} | {m + 1} | {PAPER[run]['reduction_db'][m]} | {vals} | {q1} |")
-    dfs_db, fz_db = results["vibration_reduction_db"]["dfs"], results["vibration_reduction_db"]["fuzzy"]
+            paper = PAPER[run]["reduction_db"][m] if m < len(PAPER[run]["reduction_db"]) else "-"
+            lines.append(f"| {plotting.LABELS[run]} | {m + 1} | {paper} | {vals} | {q1} |")
+    # the paper compares its two modes; a third model mode is shown but not compared
+    n_compared = len(PAPER["dfs"]["reduction_db"])
+    dfs_db, fz_db = (results["vibration_reduction_db"][run][:n_compared] for run in ("dfs", "fuzzy"))
     ordering = "agrees" if all(a is not None and b is not None and a > b for a, b in zip(dfs_db, fz_db)) else "does not agree"
     compared = "at both modes" if len(dfs_db) >= 2 else "at mode 1 (the only mode of this 1-mode model; the paper also compares mode 2)"
     lines += [
@@ -181,13 +191,19 @@ def _report_md(results: dict[str, Any]) -> str:
         ]
         if tuned["tuned_for"]:
             lines += [f"These gains were tuned for {', '.join(tuned['tuned_for'])}; they are shown here on the paper's arm, model and sampling.", ""]
+        if run["diverged"]:
+            lines += ["**The tuned gains' closed loop diverged on this scenario.**", ""]
         lines += [
-            "| | parameters | q1 settling (s) | tip range (m) | tip ISE (m^2 s) |",
+            "| | parameters | q1 settling | tip range (m) | tip ISE (m^2 s) |",
             "|---|---|---|---|---|",
         ]
         for label, params, r in (("paper", paper_gains, runs[base]), ("tuned", tuned["params"], run)):
+            gains = ", ".join(f"{k} = {v:.4g}" for k, v in params.items() if isinstance(v, float))
+            if r["diverged"]:
+                lines.append(f"| {label} | {gains} | diverged | diverged | diverged |")
+                continue
             lines.append(
-                f"| {label} | {', '.join(f'{k} = {v:.4g}' for k, v in params.items() if isinstance(v, float))} | {format_value(r['q1']['settling_time_s'], '.3f')} | "
+                f"| {label} | {gains} | {_settling(r['q1']['settling_time_s'])} | "
                 f"{format_value(r['tip_deflection_m']['min'])} .. {format_value(r['tip_deflection_m']['max'])} | {format_value(r['tip_deflection_m']['ise'])} |"
             )
     return "\n".join(lines) + "\n"
@@ -368,7 +384,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         }
 
     say("estimating PSDs")
-    mode_freqs = freqs_model[: min(n_modes, 2)]
+    mode_freqs = freqs_model
     by_estimator: dict[str, dict[str, list[float]]] = {}
     psd_curves: dict[str, dict[str, np.ndarray]] = {}
     for est_name, settings in ESTIMATORS.items():

@@ -1,6 +1,8 @@
 """`jaxflex reproduce` end to end, results.json schema, atomic writes, and the README staying true."""
 
+import copy
 import json
+import math
 import os
 import re
 import stat
@@ -412,6 +414,39 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     assert (out / "fig_tuned_response.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_reproduce_says_when_the_tuned_gains_diverge(tmp_path, capsys):
+    """Diverging tuned gains were shown as a row of n/a, with nothing on the console."""
+    tuned = tmp_path / "tuned.json"
+    tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": -400.0, "tau_s": 0.005}}))
+    out = tmp_path / "o"
+    assert cli.main(["reproduce", "--out", str(out), "--params", str(tuned)]) == 0
+    assert f"note: the tuned dfs gains of {tuned} diverge on the paper scenario (see report.md)" in capsys.readouterr().out
+    report = (out / "report.md").read_text()
+    assert "**The tuned gains' closed loop diverged on this scenario.**" in report
+    assert "| tuned | k = -400, tau_s = 0.005 | diverged | diverged | diverged |" in report
+    assert re.search(r"\| paper \| k = 55, tau_s = 0.005 \| 0\.\d{3} s \| ", report)
+
+
+def test_report_tells_a_run_that_never_settled_and_a_third_mode(reproduced):
+    """A settling time of +inf (still outside the band at the end) read n/a, as a diverged run
+    does. A third model mode has no paper value and stays out of the paper's comparison."""
+    from jaxflex.report import _report_md
+
+    _, res = copy.deepcopy(reproduced)
+    res["runs"]["dfs"]["q1"]["settling_time_s"] = math.inf
+    for table in (res["vibration_reduction_db_q1"], *res["vibration_reduction_db_by_estimator"].values()):
+        table["dfs"].append(1.0)
+        table["fuzzy"].append(99.0)
+    # DFS ahead at the paper's two modes, behind at the third: compared, it would not agree
+    res["vibration_reduction_db"] = {"dfs": [90.0, 90.0, 1.0], "fuzzy": [80.0, 80.0, 99.0]}
+    report = _report_md(res)
+    assert "| DFS | settling time | 0.25 s | not settled | " in report
+    assert "| DFS | 3 | - | 1.0 |" in report and "| PD-type fuzzy | 3 | - | 99.0 |" in report
+    assert "than the fuzzy controller at both modes agrees with" in report
+    res["model"]["natural_frequencies_hz"].append(65.09)
+    assert cli._reproduce_summary(res).split("\n")[0].startswith(f"model natural frequencies: {res['model']['natural_frequencies_hz'][0]:.2f}, {res['model']['natural_frequencies_hz'][1]:.2f}, 65.09 Hz")
+
+
 def test_tuned_differences_name_each_field_that_differs():
     """Tuned.differences against a model: the arm's fields (a derived Rayleigh pair included:
     it was formatted as a number and crashed), the mode count, dt and method."""
@@ -478,6 +513,13 @@ def test_response_figure_tells_runs_apart_and_scales_to_the_settled_ones():
     assert len(set(colours)) == 3
     assert -2e-3 < lo < -5e-4 and 1e-3 <= hi < 2e-3  # the settled runs' range, padded
     assert "Open loop (diverged)" in labels
+    # a diverged run that swings about zero is drawn until it leaves the axes, not over them
+    # (it drew a solid block); here it leaves the settled range at t = 0.5 s
+    swing = np.where(t < 0.5, 1e-4, 1e-2) * np.cos(np.pi * 100 * t)
+    fig = plotting.responses(t, {"dfs": {"q1": decay}, "tuned dfs": {"q1": swing}}, [("q1", "q1 (m)")], {"tuned dfs": True}, "title")
+    drawn = {line.get_label(): line.get_xdata() for line in fig.axes[0].get_lines()}
+    plt.close(fig)
+    assert drawn["DFS"].size == t.size and drawn["tuned dfs (diverged)"][-1] == pytest.approx(0.5)
     # jaxflex tune's two runs, neither a paper run, get two styles too (they once shared one)
     for draw in (lambda: plotting.responses(t, {"paper gains": {"q1": decay}, "tuned": {"q1": decay}}, [("q1", "q1 (m)")], {}, "title"),
                  lambda: plotting.psds(t, {"paper gains": decay + 1.0, "tuned": decay + 1.0}, (), "y", "title")):
