@@ -79,7 +79,7 @@ def _parser() -> argparse.ArgumentParser:
 
     stab = sub.add_parser("stability", help="DFS stability: critical delays, rightmost root, sampled-loop spectral radius, (k, tau) chart")
     stab.add_argument("--k", type=float, default=55.0, help="DFS gain (N*m/rad; default 55, the paper's)")
-    stab.add_argument("--tau", type=float, default=0.005, help="DFS delay (s), a whole number of samples (default 0.005)")
+    stab.add_argument("--tau", type=float, default=None, help="DFS delay (s), a whole number of samples of dt (default 0.005, the paper's)")
     stab.add_argument("--modes", type=_positive_int, default=None, help="number of assumed modes (default: the config's n_modes, else 2)")
     stab.add_argument("--dt", type=float, default=None, help="sample time of the sampled loop (s; default: the config's [scenarios] dt, else 0.001)")
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
@@ -375,6 +375,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
 def _stability(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from jaxflex.analysis.stability import delay_steps_of
     from jaxflex.beam import params_from_mapping
     from jaxflex.montecarlo import MCConfig
     from jaxflex.scenarios import ScenarioSpec
@@ -390,6 +391,12 @@ def _stability(args: argparse.Namespace) -> int:
     n_modes = args.modes if args.modes is not None else values.get("n_modes", 2)
     dt = args.dt if args.dt is not None else scenarios.dt
     print(_model_line(arm, n_modes, dt), file=sys.stderr)
+    if args.tau is None:
+        args.tau = 0.005
+        try:
+            delay_steps_of(args.tau, dt)
+        except ValueError:
+            raise ValueError(f"--tau: its default, the paper's 0.005 s, is {args.tau / dt:g} samples of dt = {dt:g} s; pass --tau, a whole number of samples of dt") from None
     result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     first = result["first_destabilising_delay_s"]
     rk4 = result["spectral_radius_rk4"]

@@ -329,6 +329,7 @@ def run_montecarlo(
     summary = summarize(config, merged)
     summary["devices"] = runner.n_devices
     summary["chunk"] = runner.chunk
+    summary["dtype"] = meta["config"]["dtype"]
     if figures and progress:
         print("montecarlo: drawing figures", file=sys.stderr, flush=True)
     summary["figures"] = _figures(runner, merged, out_dir) if figures else []

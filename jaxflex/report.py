@@ -287,6 +287,9 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
             data = json.load(f)
     except (OSError, ValueError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
         raise ValueError(f"--params: cannot read {path} as tuned.json: {err}") from None
+    if isinstance(data, dict) and "metrics" in data and "n_scenarios" in data:
+        # its params are the gains it simulated, without the model they were tuned on
+        raise ValueError(f"--params: {path} is a jaxflex montecarlo summary.json; pass the tuned.json that jaxflex tune wrote")
     name = data.get("controller") if isinstance(data, dict) else None
     named = data.get("params") if isinstance(data, dict) else None
     if name not in TUNED_CONTROLLERS or not isinstance(named, dict):

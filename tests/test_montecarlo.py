@@ -64,6 +64,7 @@ def test_summary_matches_direct_rollouts(tmp_path, monkeypatch):
     assert summary["diverged_fraction"] == 0.0
     assert summary["params"] == {"k": 55.0, "tau_s": 0.005}  # the values simulated, the paper's here
     saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["dtype"] == "float64"  # the tests run under jax_enable_x64 (conftest.py)
     assert set(saved["metrics"]) >= {"settling_time_s", "peak_tip_deflection_m", "tip_ise", "control_effort", "final_hub_angle_rad", "reduction_db_mode1", "reduction_db_mode2"}
     assert saved["metrics"]["reduction_db_mode1"]["p10"] > 0  # DFS damps the first mode in nearly every scenario
     for name in saved["figures"]:

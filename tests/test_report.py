@@ -386,6 +386,12 @@ def test_cli_montecarlo_refuses_params_of_another_controller(tmp_path, capsys):
     tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 60.0, "tau_s": 0.005}}))
     assert cli.main(["montecarlo", "--controller", "fuzzy", "--params", str(tuned), "--out", str(tmp_path / "m")]) == 2
     assert "holds tuned dfs parameters; the controller asked for is fuzzy" in capsys.readouterr().err
+    # a Monte Carlo summary holds controller and params too, but not the arm they were tuned for
+    summary = tmp_path / "summary.json"
+    summary.write_text(json.dumps({"controller": "dfs", "params": {"k": 60.0, "tau_s": 0.005}, "n_scenarios": 8, "metrics": {}, "beam": {"length_m": 1.2}}))
+    assert cli.main(["reproduce", "--params", str(summary), "--out", str(tmp_path / "r")]) == 2
+    assert f"--params: {summary} is a jaxflex montecarlo summary.json; pass the tuned.json that jaxflex tune wrote" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
 
 
 def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):

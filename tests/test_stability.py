@@ -423,12 +423,16 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     config.write_text('n_modes = 3\n[scenarios]\ndt = 5e-4\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
     assert (seen["n_modes"], seen["dt"]) == (3, 5e-4)
-    assert cli.main(["stability", "--config", str(config), "--modes", "2", "--dt", "0.002", "--out", str(tmp_path / "o")]) == 0
-    assert (seen["n_modes"], seen["dt"]) == (2, 0.002)
+    assert cli.main(["stability", "--config", str(config), "--modes", "2", "--dt", "0.002", "--tau", "0.004", "--out", str(tmp_path / "o")]) == 0
+    assert (seen["n_modes"], seen["dt"], seen["tau_s"]) == (2, 0.002, 0.004)
+    # the default delay, the paper's 5 ms, is 2.5 samples there: said so, naming --tau
+    capsys.readouterr()
+    assert cli.main(["stability", "--config", str(config), "--dt", "0.002", "--out", str(tmp_path / "o")]) == 2
+    assert "--tau: its default, the paper's 0.005 s, is 2.5 samples of dt = 0.002 s; pass --tau" in capsys.readouterr().err
     # the model is named before the run (a unit slip in [beam] shows there), with the modes above Nyquist
     freqs = np.asarray(beam.natural_frequencies_hz(arm, 2))
     capsys.readouterr()
-    assert cli.main(["stability", "--config", str(config), "--modes", "2", "--dt", "0.02", "--out", str(tmp_path / "o")]) == 0
+    assert cli.main(["stability", "--config", str(config), "--modes", "2", "--dt", "0.02", "--tau", "0.02", "--out", str(tmp_path / "o")]) == 0
     assert (
         f"model: 2 mode(s) at {freqs[0]:.4g}, {freqs[1]:.4g} Hz, sampled every 0.02 s (Nyquist 25 Hz); 1 mode(s) above Nyquist alias in what the controller measures"
         in capsys.readouterr().err

@@ -424,6 +424,7 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
             "(so the mean of the paper's gains scores 1.0 per unit weight), "
             f"combined by {problem.config.objective.reduction}",
         },
+        "dtype": str(jax.tree.leaves(best)[0].dtype),  # of the simulation: float32, or float64 under --x64
         "steps_run": state["step"],
         "best_step": state["best_step"],
         "stopped_early": state["stopped_early"],
