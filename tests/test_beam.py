@@ -265,3 +265,33 @@ def test_exact_frequencies_of_a_heavy_hub_approach_the_cantilever():
     np.testing.assert_allclose(exact, cantilever, rtol=1e-9)
     assumed = np.asarray(beam.natural_frequencies_hz(params, 8))[:4]
     assert np.all(assumed >= exact * (1 - 1e-12))
+
+
+def test_derived_rayleigh_coefficients_damp_both_flexible_modes():
+    """The derived (alpha, beta) are 2 z w1 w2 / (w1 + w2) and 2 z / (w1 + w2) of the 2-mode
+    model's flexible frequencies (scipy's generalised eigenvalues), and both flexible modes
+    stay oscillatory with ratio z (an empty set of oscillatory modes must not pass)."""
+    from scipy import linalg
+
+    z = 0.02
+    params = BeamParams(damping_ratio=z)
+    mats = beam.modal_matrices(params, 2)
+    m, k, d = (np.asarray(a) for a in (mats.M, mats.K, mats.D))
+    w1, w2 = np.sqrt(linalg.eigh(k, m, eigvals_only=True)[1:])
+    alpha, beta = beam.rayleigh_coefficients(params)
+    np.testing.assert_allclose([float(alpha), float(beta)], [2 * z * w1 * w2 / (w1 + w2), 2 * z / (w1 + w2)], rtol=1e-9)
+    np.testing.assert_allclose(d, 2 * z * w1 * w2 / (w1 + w2) * m + 2 * z / (w1 + w2) * k, rtol=1e-9, atol=1e-15)
+    n_q = 3
+    a = np.block([[np.zeros((n_q, n_q)), np.eye(n_q)], [-np.linalg.solve(m, k), -np.linalg.solve(m, d)]])
+    osc = np.linalg.eigvals(a)
+    osc = osc[osc.imag > 1e-6]
+    assert osc.shape == (2,)
+    np.testing.assert_allclose(np.sort(np.abs(osc)), [w1, w2], rtol=1e-9)
+    np.testing.assert_allclose(-osc.real / np.abs(osc), z, rtol=1e-9)
+
+
+@pytest.mark.parametrize("positions", [[0.5, 1.0 + 1e-6], [-1e-6, 0.5], [1.2]])
+def test_mode_shapes_refuse_positions_just_off_the_beam(positions):
+    with pytest.raises(ValueError, match=r"x_over_l must lie in \[0, 1\]"):
+        beam.mode_shapes(np.array(positions), 2)
+    beam.mode_shapes(np.array([0.0, 1.0]), 2)  # both ends are on the beam

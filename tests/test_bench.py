@@ -212,3 +212,33 @@ def test_result_meta_records_the_memory_fraction_and_peak(monkeypatch):
     assert _meta()["xla_python_client_mem_fraction"] is None
     peak = _peak_device_bytes()
     assert peak is None if jax.devices()[0].platform == "cpu" else peak > 0
+
+
+def test_bench_inputs_are_the_documented_scenarios():
+    """Member 0 is the paper's printed initial state (q_1 = 1 mm, q_1_dot = 10 um/s, in
+    jaxflex's state order), the others have the hub at rest, and the shared tip force is
+    0.5 N over the 10 samples of [0.1 s, 0.11 s) at 1 kHz."""
+    from jaxflex.bench import bench_inputs_np
+
+    x0, force, noise = bench_inputs_np(5, 300)
+    assert x0.shape == (5, 6) and force.shape == (300, 1) and noise.shape == (300, 2)
+    np.testing.assert_array_equal(x0[0], [0.0, 1e-3, 0.0, 0.0, 1e-5, 0.0])
+    np.testing.assert_array_equal(x0[:, [0, 3]], 0.0)  # hub angle and hub rate at rest
+    assert np.all(x0[1:, [1, 2, 4, 5]] != 0)
+    expected = np.zeros((300, 1))
+    expected[100:110] = 0.5
+    np.testing.assert_array_equal(force, expected)
+
+
+def test_smooth_defuzz_is_the_centroid_at_the_smooth_temperature():
+    from jaxflex.bench import SMOOTH_TEMPERATURE
+    from jaxflex.controllers import fuzzy, fuzzy_params
+
+    assert SMOOTH_TEMPERATURE == 0.02
+    controller, params = controller_and_params("fuzzy", "smooth", jnp.float64)
+    faithful, _ = controller_and_params("fuzzy", "centroid", jnp.float64)
+    y = jnp.array([0.05, 0.2])  # e = 0.051, e_dot = 0.06: near the origin the smooth slope is about half
+    smooth_u = controller.step(params, controller.init(params, y), y)[1]
+    hand = fuzzy(temperature=0.02)
+    np.testing.assert_array_equal(smooth_u, hand.step(fuzzy_params(), (), y)[1])
+    assert abs(float(smooth_u[0]) - float(faithful.step(params, (), y)[1][0])) > 1e-3

@@ -683,3 +683,12 @@ def test_temperature_validation(temperature):
         memberships(0.0, jnp.asarray(PAPER_CENTRES), temperature=temperature)
     fuzzy(temperature=np.float64(0.02))  # NumPy scalars and ints are accepted
     fuzzy(temperature=0)
+
+
+@pytest.mark.parametrize("field", ["k1", "k2"])
+@pytest.mark.parametrize("value", [0.0, -0.3])
+def test_input_scalings_must_be_positive(field, value):
+    """k1 and k2 scale the measurement into the universe: zero or negative gains (a dead or
+    sign-flipped input) are refused by name, like a non-finite one."""
+    with pytest.raises(ValueError, match=rf"{field} must be finite and > 0"):
+        fuzzy().check(fuzzy_params(**{field: value}))

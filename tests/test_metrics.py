@@ -199,3 +199,19 @@ def test_vmap_and_jit_equal_loop():
 def test_settling_time_final_window_and_last_sample(s, dt, kwargs, expected):
     assert float(settling_time(s, dt, **kwargs)) == expected
     assert _settling_reference(s, dt, **kwargs) == expected
+
+
+def test_samples_at_rounds_half_up():
+    """The documented index is floor(t / dt + 0.5): exact halves go up (NumPy's round would
+    send 0.5 and 2.5 down, to the even index)."""
+    s = np.arange(10.0) * 3.0
+    np.testing.assert_array_equal(samples_at(s, 1.0, (0.5, 1.5, 2.5, 8.5)), [3.0, 6.0, 9.0, 27.0])
+    np.testing.assert_array_equal(jax.jit(lambda s, dt: samples_at(s, dt, (0.5, 2.5)))(s, 1.0), [3.0, 9.0])
+
+
+def test_signal_metrics_passes_band_and_final_fraction_to_the_settling_time():
+    s = np.arange(10.0)
+    for kwargs in (dict(band=0.5, final_fraction=1.0), dict(band=0.5, final_fraction=0.1), dict(band=0.3, final_fraction=0.2)):
+        expected = _settling_reference(s, 1.0, **kwargs)
+        assert float(signal_metrics(s, 1.0, **kwargs).settling_time_s) == expected
+    assert _settling_reference(s, 1.0, band=0.5, final_fraction=1.0) == math.inf  # s_f = 4.5: the last sample is outside

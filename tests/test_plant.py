@@ -219,3 +219,43 @@ def test_rk4_step_check_refuses_exactly_where_the_rk4_map_grows():
     assert np.abs(np.linalg.eigvals(np.asarray(discretize(plant, hi * (1 + 1e-3), "rk4").Ad))).max() < 1.01
     with pytest.raises(ValueError, match="method = 'rk4' with dt"):
         check_rk4_step(plant, hi * (1 + 1e-3))
+
+
+def test_rk4_amplified_omega_is_the_fastest_amplified_mode_and_skips_growing_ones():
+    """At a step that amplifies both flexible modes of the stiff arm the report is the faster
+    one (|lambda| = omega_n for Rayleigh damping); a mode that the continuous plant grows
+    itself (Re lambda > 0) is not blamed on RK4."""
+    from jaxflex.beam import natural_frequencies_hz
+    from jaxflex.plant import rk4_amplified_omega
+
+    stiff = BeamParams(length_m=0.25, thickness_m=8e-3)
+    plant = make_plant(stiff, 2)
+    omega = 2 * np.pi * np.asarray(natural_frequencies_hz(stiff, 2))
+    dt = 4e-3
+    assert np.all(omega * dt > 2.83)  # both modes amplified by one step
+    np.testing.assert_allclose(rk4_amplified_omega(plant, dt), omega[1], rtol=1e-9)
+    assert rk4_amplified_omega(plant, 1e-4) is None
+    # A growing mode (lambda = +10/s, |R(10 dt)| > 1) next to a decaying oscillation
+    # lambda = -1 +- 4000i (|R| > 1 at dt = 1 ms): only the oscillation is reported.
+    a = np.zeros((3, 3))
+    a[0, 0] = 10.0
+    a[1:, 1:] = [[-1.0, 4000.0], [-4000.0, -1.0]]
+    growing = plant._replace(A=jnp.asarray(a))
+    np.testing.assert_allclose(rk4_amplified_omega(growing, 1e-3), np.hypot(1.0, 4000.0), rtol=1e-12)
+    assert rk4_amplified_omega(plant._replace(A=jnp.asarray([[10.0]])), 1e-3) is None
+
+
+def test_measurement_and_performance_maps_read_the_documented_states():
+    """x = [theta, q_1..q_n, theta_dot, q_dot...]: y = [theta, theta_dot]; z = [theta,
+    sum_i phi_i(L) q_i, L theta + w(L)] with |phi_i(L)| = 2 (the normalisation)."""
+    for n in (1, 3):
+        p = make_plant(BeamParams(length_m=1.3), n)
+        n_q = n + 1
+        expected_c = np.zeros((2, 2 * n_q))
+        expected_c[0, 0] = expected_c[1, n_q] = 1.0
+        np.testing.assert_array_equal(np.asarray(p.C), expected_c)
+        cz = np.asarray(p.Cz)
+        np.testing.assert_array_equal(cz[0], expected_c[0])
+        np.testing.assert_array_equal(cz[1, [0, *range(n_q, 2 * n_q)]], 0.0)
+        np.testing.assert_allclose(np.abs(cz[1, 1:n_q]), 2.0, rtol=1e-12)
+        np.testing.assert_allclose(cz[2], 1.3 * expected_c[0] + cz[1], rtol=1e-15)

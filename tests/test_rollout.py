@@ -336,3 +336,24 @@ def test_paper_scenario_follows_the_sampled_plant_and_rollout_names_bad_inputs(p
     with pytest.raises(ValueError, match=r"params\.k1 is float64, wider than the plant's float32"):
         jf.rollout(plant32, *jf.controllers.by_name("fuzzy", dt=1e-3, dtype=jnp.float64), sc32)
     jf.rollout(plant32, *jf.controllers.by_name("fuzzy", dt=1e-3, dtype=jnp.float32), sc32)  # and in float32 it runs
+
+
+@pytest.mark.parametrize("freqs", [[-1.0], [13.3, -0.5], [float("inf")]])
+def test_negative_or_infinite_mode_frequencies_are_refused(plant2, freqs):
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    with pytest.raises(ValueError, match="mode_freqs_hz must be finite frequencies >= 0"):
+        jf.rollout(plant2, open_loop(), OpenLoopParams(), sc, output="metrics", mode_freqs_hz=freqs)
+
+
+def test_a_sample_time_a_tenth_of_a_percent_off_is_another_dt():
+    """Only float32 round-off (1e-6 relative) counts as the same sample time: a plant at
+    1.001 ms is refused by a 1 ms controller (eagerly by name, under jit by a diverged run),
+    and two controllers 0.1 % apart are not combined."""
+    near = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1.001e-3, "rk4")
+    sc = paper_scenario(near, horizon_s=0.01)
+    with pytest.raises(ValueError, match=r"controller was built for dt = 0.001 s but the plant is sampled at dt = 0.001001 s"):
+        jf.rollout(near, dfs(dt=1e-3), DFSParams(55.0, 0.005), sc)
+    simulate = jax.jit(jf.rollout, static_argnums=1, static_argnames="output")
+    assert bool(simulate(near, dfs(dt=1e-3), DFSParams(55.0, 0.005), sc, output="metrics").diverged)
+    with pytest.raises(ValueError, match=r"built for dt = 0.001 s and dt = 0.001001 s"):
+        combine(dfs(dt=1e-3), dfs(dt=1.001e-3))
