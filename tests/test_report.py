@@ -334,6 +334,27 @@ def test_cli_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatc
     assert not (tmp_path / "u").exists()
 
 
+def test_console_script_ends_at_once_after_an_interrupt(monkeypatch):
+    """The installed `jaxflex` ends an interrupted run with os._exit(130), skipping the
+    interpreter's shutdown (which crashed while XLA was still compiling); other statuses
+    leave through sys.exit."""
+    ended = []
+
+    def fake_exit(code):
+        ended.append(("os._exit", code))
+        raise SystemExit(code)
+
+    monkeypatch.setattr(cli.os, "_exit", fake_exit)
+    for status in (130, 2, 0):
+        monkeypatch.setattr(cli, "main", lambda status=status: status)
+        with pytest.raises(SystemExit) as info:
+            cli.console()
+        assert info.value.code == status
+    assert ended == [("os._exit", 130)]
+    scripts = fileio.read_toml(ROOT / "pyproject.toml")["project"]["scripts"]
+    assert scripts == {"jaxflex": "jaxflex.cli:console"}
+
+
 def test_cli_failed_run_leaves_no_empty_out_folder(tmp_path, capsys, monkeypatch):
     """An --out the run created and wrote no file in is removed on error or Ctrl-C; one that
     existed before, or that holds a file (a checkpoint to resume from), is kept."""
