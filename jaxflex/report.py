@@ -256,6 +256,8 @@ class Tuned(NamedTuple):
         try:
             controller.check(params)
         except ValueError as err:
+            if "capacity" in str(err):
+                err = f"{err} Here that is the capacity in the tuned.json's config ({opts['capacity']} samples), which its tune run set."
             raise ValueError(err if same_dt(self.dt, dt) else f"tuned at dt = {self.dt:g} s, run at dt = {dt:g} s: {err}") from None
         return controller, params
 

@@ -304,6 +304,8 @@ def test_params_tuned_at_another_dt_run_at_that_dt(tmp_path, capsys):
     assert cli.main(["reproduce", "--params", str(tuned), "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err
     assert "cannot run on the paper's scenario (dt = 0.001 s): tuned at dt = 0.002 s, run at dt = 0.001 s: tau_s must be in (0, 0.032] s" in err
+    # reproduce has no capacity option: the message names where these gains' buffer is set
+    assert "Here that is the capacity in the tuned.json's config (32 samples), which its tune run set." in err
 
 
 def test_percentile_bands_pair_each_percentile_with_its_mirror():
