@@ -284,6 +284,8 @@ def test_the_final_point_is_scored_and_may_be_kept(tmp_path, monkeypatch):
     """Held-out values 5 (step 0) then 4 (the parameters after the last of 3 updates, off the
     eval_every schedule): the final point is kept. Resumed with more steps, that point becomes
     an ordinary row and the run goes on to its new final point, with each step once."""
+    import tqdm.auto
+
     import tuning.tuner
 
     script = iter([5.0, 4.0, 3.0, 2.0])
@@ -294,15 +296,33 @@ def test_the_final_point_is_scored_and_may_be_kept(tmp_path, monkeypatch):
             evaluate = self.evaluate
             self.evaluate = lambda raw, batch: (jnp.float32(next(script)), None) if batch is self.heldout else evaluate(raw, batch)
 
+    class Bar:  # tqdm's calls, recorded: the bar opens after each process's first (compiling) step
+        made = []
+
+        def __init__(self, total, initial, **kwargs):
+            self.total, self.initial, self.n = total, initial, initial
+            Bar.made.append(self)
+
+        def update(self, n):
+            self.n += n
+
+        def set_postfix(self, **kwargs):
+            pass
+
+        def close(self):
+            pass
+
     monkeypatch.setattr(tuning.tuner, "Problem", Scripted)
+    monkeypatch.setattr(tqdm.auto, "tqdm", Bar)
     config = TuneConfig(controller="dfs", steps=3, eval_every=10, **SHARED)
-    state = tune(config, tmp_path, progress=False)
+    state = tune(config, tmp_path)
     assert [(h["step"], h.get("val_objective")) for h in state["history"]] == [(0, 5.0), (1, None), (2, None), (3, 4.0)]
     assert state["best_step"] == 3 and state["step"] == 3 and not state["stopped_early"]
     tree_allclose(state["best_raw"], state["raw"], rtol=0)
-    longer = tune(dataclasses.replace(config, steps=5), tmp_path, resume=True, progress=False)
+    longer = tune(dataclasses.replace(config, steps=5), tmp_path, resume=True)
     assert [(h["step"], h.get("val_objective")) for h in longer["history"]] == [(0, 5.0), (1, None), (2, None), (3, None), (4, None), (5, 3.0)]
     assert longer["best_step"] == 5 and "grad_norm" in longer["history"][3]
+    assert [(bar.total, bar.initial, bar.n) for bar in Bar.made] == [(3, 1, 3), (5, 4, 5)]
 
 
 @pytest.mark.parametrize("controller", ["dfs", "fuzzy"])

@@ -348,10 +348,6 @@ def tune(
         }
 
     bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=config.steps, initial=min(state["step"], config.steps), desc=f"tune {config.controller}", unit="step")
     history = state["history"]
     if history and history[-1]["step"] == state["step"] < config.steps:
         # a finished run resumed with more steps: its final point becomes an ordinary one
@@ -388,8 +384,15 @@ def tune(
             history.append(row)
             if final:
                 continue
-            if bar is not None:
+            if progress and bar is None:
+                # opened after this process's first step, which compiled: timed with it, the
+                # bar's rate and time left were off by the compile time (16 s/step at first)
+                from tqdm.auto import tqdm
+
+                bar = tqdm(total=config.steps, initial=state["step"], desc=f"tune {config.controller}", unit="step")
+            elif bar is not None:
                 bar.update(1)
+            if bar is not None:
                 bar.set_postfix(loss=f"{loss:.4g}", best_val=f"{state['best_val']:.4g}")
             if state["step"] % config.checkpoint_every == 0:
                 _save_checkpoint(ckpt_path, state)
