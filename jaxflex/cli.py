@@ -275,7 +275,8 @@ def _reproduce_summary(results: dict) -> str:
 
 def _model_line(arm, n_modes: int, dt: float) -> str:
     """The model a command is about to run, so that a unit slip in ``[beam]`` shows before
-    the run: its flexible frequencies, the sample time, and the modes above Nyquist."""
+    the run: its flexible frequencies, their damping (a damping_ratio of 1 meant as 1 % is
+    100 %), the sample time, and the modes above Nyquist."""
     import numpy as np
 
     from jaxflex.beam import natural_frequencies_hz
@@ -284,7 +285,11 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     check_dt(dt)
     freqs = np.asarray(natural_frequencies_hz(arm, n_modes), float)
     nyquist = 0.5 / dt
-    line = f"model: {n_modes} mode(s) at {', '.join(f'{f:.4g}' for f in freqs)} Hz, sampled every {dt:g} s (Nyquist {nyquist:.4g} Hz)"
+    if arm.rayleigh_alpha is None:
+        damping = f"damping ratio {float(arm.damping_ratio):g} in flexible modes 1-2"
+    else:
+        damping = f"Rayleigh alpha = {float(arm.rayleigh_alpha):g} 1/s, beta = {float(arm.rayleigh_beta):g} s"
+    line = f"model: {n_modes} mode(s) at {', '.join(f'{f:.4g}' for f in freqs)} Hz with {damping}, sampled every {dt:g} s (Nyquist {nyquist:.4g} Hz)"
     above = freqs[freqs > nyquist]
     if above.size:
         line += f"; {above.size} mode(s) above Nyquist alias in what the controller measures"

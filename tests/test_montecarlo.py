@@ -419,6 +419,11 @@ def test_model_line_counts_the_modes_above_nyquist():
     line = cli._model_line(BeamParams(), 2, 0.02)
     assert line.endswith("(Nyquist 25 Hz); 1 mode(s) above Nyquist alias in what the controller measures")
     assert "above Nyquist" not in cli._model_line(BeamParams(), 2, 1e-3)
+    # the damping is named too: a damping_ratio of 1 meant as 1 % shows as 1, and a given
+    # Rayleigh pair as itself
+    assert " Hz with damping ratio 1 in flexible modes 1-2, sampled every " in cli._model_line(BeamParams(damping_ratio=1.0), 2, 1e-3)
+    given = BeamParams(rayleigh_alpha=0.5, rayleigh_beta=2e-5)
+    assert " Hz with Rayleigh alpha = 0.5 1/s, beta = 2e-05 s, sampled every " in cli._model_line(given, 2, 1e-3)
 
 
 def test_the_dtype_is_part_of_a_runs_fingerprint():
