@@ -320,9 +320,40 @@ def test_the_final_point_is_scored_and_may_be_kept(tmp_path, monkeypatch):
     assert state["best_step"] == 3 and state["step"] == 3 and not state["stopped_early"]
     tree_allclose(state["best_raw"], state["raw"], rtol=0)
     longer = tune(dataclasses.replace(config, steps=5), tmp_path, resume=True)
-    assert [(h["step"], h.get("val_objective")) for h in longer["history"]] == [(0, 5.0), (1, None), (2, None), (3, None), (4, None), (5, 3.0)]
+    assert [(h["step"], h.get("val_objective")) for h in longer["history"]] == [(0, 5.0), (1, None), (2, None), (3, 4.0), (4, None), (5, 3.0)]
     assert longer["best_step"] == 5 and "grad_norm" in longer["history"][3]
     assert [(bar.total, bar.initial, bar.n) for bar in Bar.made] == [(3, 1, 3), (5, 4, 5)]
+
+
+def test_a_finished_run_resumed_with_more_steps_equals_the_longer_run(tmp_path):
+    """Validated at every update with patience 1: the 2-step run's final point (its best) is
+    counted once, not again when the resumed run passes it (which stopped it at once)."""
+    config = TuneConfig(controller="dfs", steps=4, eval_every=1, patience=1, **SHARED)
+    full = tune(config, tmp_path / "full", progress=False)
+    tune(dataclasses.replace(config, steps=2), tmp_path / "cut", progress=False)
+    resumed = tune(config, tmp_path / "cut", resume=True, progress=False)
+    for key in ("step", "best_step", "bad_evals", "stopped_early", "best_val"):
+        assert resumed[key] == full[key], key
+    assert [(h["step"], h["loss"], h.get("val_objective")) for h in resumed["history"]] == [(h["step"], h["loss"], h.get("val_objective")) for h in full["history"]]
+    tree_allclose(resumed["best_raw"], full["best_raw"], rtol=0)
+
+
+def test_a_final_point_with_a_non_finite_objective_is_not_kept(tmp_path, monkeypatch):
+    """The final point is evaluated, not updated from, so its NaN cannot stop a run as an
+    update's does: it is recorded, left unvalidated, and the best earlier point is kept."""
+    import tuning.tuner
+
+    class NaNAtTheEnd(tuning.tuner.Problem):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            evaluate = self.evaluate
+            self.evaluate = lambda raw, batch: (jnp.nan, {"objective": jnp.nan}) if batch is self.train else evaluate(raw, batch)
+
+    monkeypatch.setattr(tuning.tuner, "Problem", NaNAtTheEnd)
+    state = tune(TuneConfig(controller="dfs", steps=3, eval_every=1, **SHARED), tmp_path, progress=False)
+    last = state["history"][-1]
+    assert last["step"] == 3 and math.isnan(last["loss"]) and "val_objective" not in last
+    assert state["best_step"] < 3 and not state["stopped_early"]
 
 
 @pytest.mark.parametrize("controller", ["dfs", "fuzzy"])

@@ -290,9 +290,10 @@ def tune(
       out_dir: folder for checkpoint.npz and history.csv.
       resume: continue from ``out_dir/checkpoint.npz`` (an error if it is missing or was made
         with another configuration). An interrupted run ends as the uninterrupted one would.
-        A finished run resumed with more ``steps`` goes on, but is not quite one longer run:
-        its final point was validated (every run scores the parameters after its last update),
-        which may have moved the best parameters and the early-stopping count.
+        A finished run resumed with more ``steps`` goes on as one longer run would, except
+        when its final point fell between validations (every run scores the parameters after
+        its last update): that extra score may have moved the best parameters and the
+        early-stopping count.
       progress: show a tqdm progress bar with the loss and the validation objective.
       on_step: called with the step number after each step (tests use it to interrupt).
       optimizer: any optax GradientTransformation (default Adam at ``config.learning_rate``);
@@ -349,18 +350,25 @@ def tune(
 
     bar = None
     history = state["history"]
+    carried = None
     if history and history[-1]["step"] == state["step"] < config.steps:
-        # a finished run resumed with more steps: its final point becomes an ordinary one
-        history.pop()
+        # A finished run resumed with more steps: its final point becomes an ordinary one, and
+        # its held-out score, already counted in best_* and bad_evals, is carried over rather
+        # than counted twice.
+        carried = history.pop()
     try:
         while not state["stopped_early"] and not (history and history[-1]["step"] == config.steps):
             # Each history row is one point: the parameters after `step` updates, the training
             # objective and gradient norm there (from which the next update is taken), and
             # every eval_every updates the held-out objective there. The final point, after
-            # the last update, is scored (training and held-out objectives) but not updated.
+            # the last update, is scored (training and held-out objectives) but not updated;
+            # a non-finite training objective there leaves it unvalidated, so it is not kept.
             at, n = state["raw"], state["step"]
             final = n == config.steps
             if final:
+                if bar is not None:
+                    bar.close()
+                    bar = None
                 value, aux = problem.evaluate(at, problem.train)
                 info = {"loss": value, **aux}
             else:
@@ -373,7 +381,11 @@ def tune(
                 state["raw"], state["opt_state"], state["step"] = raw, opt_state, n + 1
             row = {"step": n, **{k: float(v) for k, v in info.items()}}
             row.update(problem.tc.named(problem.tc.to_physical(at)))
-            if n % config.eval_every == 0 or final:
+            if carried is not None and n == carried["step"] and "val_objective" in carried:
+                row["val_objective"] = carried["val_objective"]
+                if n % config.eval_every == 0:  # where a longer run would have stopped
+                    state["stopped_early"] = state["bad_evals"] >= config.patience
+            elif (n % config.eval_every == 0 or final) and math.isfinite(row["loss"]):
                 val = float(problem.evaluate(at, problem.heldout)[0])
                 row["val_objective"] = val
                 if val < state["best_val"]:
