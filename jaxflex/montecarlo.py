@@ -131,19 +131,25 @@ class MCConfig:
     def fingerprint_fields(self) -> dict[str, Any]:
         """What a resumed run must share with the folder, as plain JSON values: everything but
         ``n_scenarios`` (more may be asked of a resumed run), ``chunk`` (the folder records
-        the chunk it was run with) and what only the summary and the figures read from the
-        stored rows (``percentiles``, ``band_scenarios``: a resume may ask for others), and the
-        dtype."""
+        the chunk it was run with) and what only the summary and the figures read
+        (``percentiles``, ``band_scenarios``: a resume may ask for others), and the dtype."""
         d = dataclasses.asdict(self)
         d["beam"] = self.beam._asdict()
-        for name in ("n_scenarios", "chunk", "percentiles", "band_scenarios"):
+        for name in ("n_scenarios", "chunk", *_SUMMARY_ONLY):
             d.pop(name)
         d["dtype"] = str(jnp.zeros(()).dtype)
         return json.loads(json.dumps(fileio.to_jsonable(d)))
 
     def fingerprint(self) -> str:
         """Hash of ``fingerprint_fields``."""
-        return hashlib.sha256(json.dumps(self.fingerprint_fields(), sort_keys=True).encode()).hexdigest()[:16]
+        return _digest(self.fingerprint_fields())
+
+
+_SUMMARY_ONLY = ("percentiles", "band_scenarios")  # read by the summary and the figures only
+
+
+def _digest(fields: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def controller_and_params(name: str, params: dict, dt: float, capacity: int, delay: str = "linear", pade_order: int = 8, temperature: float = 0.0) -> tuple[Controller, Any]:
@@ -359,8 +365,10 @@ def _check_resume(meta_path: str, meta: dict[str, Any], n_scenarios: int) -> Non
             previous = json.load(f)
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"--resume: cannot read {meta_path} ({err}); start a new run in another --out") from None
-    if not isinstance(previous, dict) or previous.get("fingerprint") != meta["fingerprint"]:
-        before = previous.get("config", {}) if isinstance(previous, dict) and isinstance(previous.get("config"), dict) else {}
+    before = previous.get("config", {}) if isinstance(previous, dict) and isinstance(previous.get("config"), dict) else {}
+    # a folder written while _SUMMARY_ONLY still counted has them in its config and its hash
+    same = isinstance(previous, dict) and meta["fingerprint"] in (previous.get("fingerprint"), _digest({k: v for k, v in before.items() if k not in _SUMMARY_ONLY}))
+    if not same:
         changed = sorted(k for k in meta["config"] if k in before and before[k] != meta["config"][k])
         what = f"changed: {', '.join(changed)}" if changed else "the configuration changed"
         raise ValueError(f"--resume: {meta_path} was written by a run with another configuration ({what})")

@@ -26,6 +26,7 @@ from jaxflex.analysis import PSDSettings, signal_metrics, samples_at, vibration_
 from jaxflex.analysis.metrics import diverged
 from jaxflex.controllers import by_name
 from jaxflex.controllers.base import same_dt
+from jaxflex.controllers.dfs import CAPACITY_REMEDY
 from jaxflex.controllers.fuzzy import fuzzy_params, fuzzy_surface
 from jaxflex.controllers.registry import PARAMETERS
 from jaxflex.plant import METHODS, discretize, make_plant, rk4_amplified_omega
@@ -256,8 +257,8 @@ class Tuned(NamedTuple):
         try:
             controller.check(params)
         except ValueError as err:
-            if "capacity" in str(err):
-                err = f"{err} Here that is the capacity in the tuned.json's config ({opts['capacity']} samples), which its tune run set."
+            # reproduce has no capacity option: name where these gains' buffer is set
+            err = str(err).replace(CAPACITY_REMEDY, f"The buffer is the capacity in the tuned.json's config ({opts['capacity']} samples), which its tune run set.")
             raise ValueError(err if same_dt(self.dt, dt) else f"tuned at dt = {self.dt:g} s, run at dt = {dt:g} s: {err}") from None
         return controller, params
 

@@ -2,6 +2,7 @@
 resume equals an uninterrupted run, and refusal of impossible descriptions."""
 
 import dataclasses
+import hashlib
 import json
 import os
 import subprocess
@@ -87,6 +88,12 @@ def test_summary_matches_direct_rollouts(tmp_path, monkeypatch):
     np.testing.assert_allclose([stats["p5"], stats["p99"]], np.percentile(peaks, [5, 99]), rtol=1e-10)
     assert "p50" not in stats and again["percentiles"] == [5.0, 99.0]
     assert drawn["percentiles"] == [5.0, 50.0, 99.0] and "over 8 of 8 scenarios" in drawn["title"]
+    # a folder written when they still bound it (in its config and its hash) resumes too
+    meta = json.loads((tmp_path / "montecarlo.json").read_text())
+    meta["config"].update(percentiles=[10.0, 50.0, 90.0], band_scenarios=256)
+    meta["fingerprint"] = hashlib.sha256(json.dumps(meta["config"], sort_keys=True).encode()).hexdigest()[:16]
+    (tmp_path / "montecarlo.json").write_text(json.dumps(meta))
+    assert run_montecarlo(config, tmp_path, resume=True, progress=False, figures=False)["metrics"]["tip_ise"] == summary["metrics"]["tip_ise"]
 
 
 def test_diverged_runs_are_counted_not_averaged(tmp_path):
@@ -305,7 +312,8 @@ def test_params_tuned_at_another_dt_run_at_that_dt(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "cannot run on the paper's scenario (dt = 0.001 s): tuned at dt = 0.002 s, run at dt = 0.001 s: tau_s must be in (0, 0.032] s" in err
     # reproduce has no capacity option: the message names where these gains' buffer is set
-    assert "Here that is the capacity in the tuned.json's config (32 samples), which its tune run set." in err
+    assert "tau_s must be in (0, 0.032] s (the delay buffer holds 32 samples of 0.001 s); got 0.05 s. The buffer is the capacity in the tuned.json's config (32 samples), which its tune run set." in err
+    assert "dfs()" not in err
 
 
 def test_percentile_bands_pair_each_percentile_with_its_mirror():

@@ -46,6 +46,7 @@ from jaxflex.controllers.base import Controller, check_finite_scalar, check_para
 
 _WHOLE_SAMPLE_RTOL = 1e-6  # tau / dt within this of an integer is a whole number of samples (float32 round-off)
 APPROXIMATIONS = ("buffer", "pade")
+CAPACITY_REMEDY = "Pass a larger capacity to dfs() (the capacity key of a tune or montecarlo config)."
 
 
 class DFSParams(NamedTuple):
@@ -141,7 +142,7 @@ def dfs(
         if steps > capacity * (1 + _WHOLE_SAMPLE_RTOL):
             raise ValueError(
                 f"tau_s must be in (0, {capacity * dt:g}] s (the delay buffer holds {capacity} samples of {dt:g} s); "
-                f"got {tau:g} s. Pass a larger capacity to dfs() (the capacity key of a tune or montecarlo config)."
+                f"got {tau:g} s. {CAPACITY_REMEDY}"
             )
         if interpolation == "nearest" and abs(steps - np.round(steps)) > _WHOLE_SAMPLE_RTOL * max(1.0, steps):
             raise ValueError(
