@@ -38,11 +38,13 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.typing import ArrayLike
 
 from jaxflex import checks
 
 INTERPOLATIONS = ("nearest", "linear", "cubic")
+WHOLE_SAMPLE_RTOL = 1e-6  # d within this (relative) of an integer is a whole number of samples (float32 round-off)
 _CUBIC_POINTS = 4  # nodes of the Lagrange stencil
 
 
@@ -56,6 +58,13 @@ class DelayState(NamedTuple):
 
     buffer: jax.Array
     head: jax.Array
+
+
+def whole_samples(d: ArrayLike) -> ArrayLike:
+    """Whether a delay of ``d`` samples is a whole number of them, to ``WHOLE_SAMPLE_RTOL``:
+    a Python or NumPy bool for a concrete ``d`` (reckoned in float64), a traced one otherwise."""
+    xp = np if isinstance(d, (int, float, np.number, np.ndarray)) else jnp
+    return xp.abs(d - xp.round(d)) <= WHOLE_SAMPLE_RTOL * xp.maximum(1.0, d)
 
 
 def check_capacity(capacity: int) -> int:

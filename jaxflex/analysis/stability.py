@@ -73,13 +73,13 @@ from jax.typing import ArrayLike
 
 from jaxflex import beam, checks
 from jaxflex.controllers.base import check_finite_scalar
+from jaxflex.delay import whole_samples
 from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant, n_modes_of
 
 _NULL_RTOL = 1e3  # x n_x eps x largest singular value: rank tolerance for the structural null space
 _ROOT_IMAG_RTOL = 1e-6  # a root v of F is real when |Im v| <= this x |v| (before polishing on 1 + 2k Re G)
 _SCAN_POINTS_PER_DECADE = 2000  # backup frequency scan: resolves resonances with damping ratio >~ 1e-3
 _DEDUP_RTOL = 1e-7  # two polished crossing frequencies closer than this (relative) are the same one
-_WHOLE_SAMPLE_RTOL = 1e-6  # tau / dt within this of an integer is a whole number of samples
 _MAX_CRITICAL_DELAYS = 1_000_000  # per crossing frequency; beyond, |k| or tau_max is far outside the arm's range
 DEFAULT_N_CHEB = 32  # Chebyshev intervals of the generator: on the 2-mode arm the rightmost root is converged to ~1e-11 rad/s for tau <= 40 ms, k <= 120
 
@@ -109,7 +109,7 @@ def delay_steps_of(tau_s: ArrayLike, dt: ArrayLike) -> int:
     tau = check_delay(tau_s)
     step = check_finite_scalar("dt", dt, positive=True)
     steps = tau / step
-    if abs(steps - round(steps)) > _WHOLE_SAMPLE_RTOL * max(1.0, steps) or round(steps) < 1:
+    if not whole_samples(steps) or round(steps) < 1:
         raise ValueError(f"tau_s must be a whole number >= 1 of samples of dt = {step:g} s; got {tau:g} s ({steps:g} samples)")
     return int(round(steps))
 

@@ -38,13 +38,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.typing import ArrayLike
 
 from jaxflex import delay, pade
 from jaxflex.controllers.base import Controller, check_finite_scalar, check_params_type
 
-_WHOLE_SAMPLE_RTOL = 1e-6  # tau / dt within this of an integer is a whole number of samples (float32 round-off)
 APPROXIMATIONS = ("buffer", "pade")
 CAPACITY_REMEDY = "Pass a larger capacity to dfs() (the capacity key of a tune or montecarlo config)."
 
@@ -127,9 +125,9 @@ def dfs(
             return state, -params.k * (theta - theta_delayed)
         steps = params.tau_s / dt
         state, theta_delayed = delay.delay_step(state, theta, steps, interpolation)
-        held = (steps > 0) & (steps <= capacity * (1 + _WHOLE_SAMPLE_RTOL))
+        held = (steps > 0) & (steps <= capacity * (1 + delay.WHOLE_SAMPLE_RTOL))
         if interpolation == "nearest":
-            held = held & (jnp.abs(steps - jnp.round(steps)) <= _WHOLE_SAMPLE_RTOL * jnp.maximum(1.0, steps))
+            held = held & delay.whole_samples(steps)
         return state, jnp.where(held, -params.k * (theta - theta_delayed), jnp.nan)
 
     def check(params: DFSParams) -> None:
@@ -139,12 +137,12 @@ def dfs(
         if use_pade:
             return
         steps = tau / dt
-        if steps > capacity * (1 + _WHOLE_SAMPLE_RTOL):
+        if steps > capacity * (1 + delay.WHOLE_SAMPLE_RTOL):
             raise ValueError(
                 f"tau_s must be in (0, {capacity * dt:g}] s (the delay buffer holds {capacity} samples of {dt:g} s); "
                 f"got {tau:g} s. {CAPACITY_REMEDY}"
             )
-        if interpolation == "nearest" and abs(steps - np.round(steps)) > _WHOLE_SAMPLE_RTOL * max(1.0, steps):
+        if interpolation == "nearest" and not delay.whole_samples(steps):
             raise ValueError(
                 f"tau_s must be a whole number of samples of dt = {dt:g} s with interpolation='nearest'; got {tau:g} s "
                 f"({steps:g} samples). Use interpolation='linear' or 'cubic' for fractional delays."
