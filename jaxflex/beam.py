@@ -302,14 +302,28 @@ def modal_matrices(params: BeamParams, n_modes: int = 2) -> ModalMatrices:
     return ModalMatrices(M, K, D, torque_input, tip_force_input, tip_deflection)
 
 
-def natural_frequencies_hz(params: BeamParams, n_modes: int = 2) -> jax.Array:
-    """[n] undamped flexible natural frequencies (Hz) of the unactuated n-mode model, ascending.
+HUBS = ("free", "clamped")
 
-    The hub is free (no torque), so the rigid-body mode at 0 Hz is excluded.
+
+def natural_frequencies_hz(params: BeamParams, n_modes: int = 2, hub: str = "free") -> jax.Array:
+    """[n] undamped flexible natural frequencies (Hz) of the n-mode model, ascending.
+
+    Args:
+      params: physical constants.
+      n_modes: number of clamped-free assumed modes (static Python int >= 1).
+      hub: ``"free"`` (no torque on the hub, the arm as simulated open loop; the rigid-body
+        mode at 0 Hz is excluded) or ``"clamped"`` (the hub held still, as by a stiff
+        position servo: the cantilever's frequencies, from the flexible block of ``M`` and
+        ``K``; without a payload they are exact, since the assumed modes are the
+        cantilever's own).
     """
     n_modes = check_n_modes(n_modes)
+    if hub not in HUBS:
+        raise ValueError(f"hub must be one of {HUBS}; got {hub!r}")
     check_beam_params(params)
     M, K, *_ = _structural(params, n_modes)
+    if hub == "clamped":
+        return jnp.sqrt(jnp.maximum(_undamped_eigenvalues(M[1:, 1:], K[1:, 1:]), 0.0)) / (2.0 * jnp.pi)
     return _flexible_omegas(M, K) / (2.0 * jnp.pi)
 
 

@@ -8,7 +8,7 @@ import sys
 import time
 from typing import Sequence
 
-from jaxflex import fileio
+from jaxflex import checks, fileio
 from jaxflex.controllers.registry import NAMES
 
 
@@ -85,6 +85,15 @@ def _parser() -> argparse.ArgumentParser:
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
     stab.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the arm (default the paper's), its n_modes and [scenarios] dt the defaults of --modes and --dt; a top-level key neither tune nor montecarlo accepts is refused, the other keys are not read")
     stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
+
+    cal = sub.add_parser("calibrate", help="fit the arm's constants to measured natural frequencies (and damping ratios); writes a config for the other commands")
+    cal.add_argument("--freqs", type=float, nargs="+", required=True, metavar="HZ", help="measured natural frequencies of flexible modes 1, 2, ... (Hz, ascending)")
+    cal.add_argument("--damping", type=float, nargs="+", default=None, metavar="RATIO", help="measured damping ratios of modes 1, 2, ... (each in (0, 1); at most one per frequency)")
+    cal.add_argument("--fit", nargs="+", default=None, metavar="FIELD", help="[beam] fields to fit, at most one per frequency (default: youngs_modulus_pa hub_inertia_kg_m2, or the first with one frequency)")
+    cal.add_argument("--hub", choices=("free", "clamped"), default="free", help="how the arm was held when measured: free (motor unpowered; default) or clamped (hub held still)")
+    cal.add_argument("--modes", type=_positive_int, default=None, help="assumed modes of the model (default: the config's n_modes, else max(2, number of frequencies))")
+    cal.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the starting arm (default the paper's), its n_modes the default of --modes")
+    cal.add_argument("--out", default="calibration", help="output folder (default ./calibration)")
 
     bench = sub.add_parser("bench", help="quick benchmark of vectorised closed-loop rollouts (under two minutes); prints a table")
     bench.add_argument("--json", default=None, help="write one JSON object per configuration (JSON Lines) to this file")
@@ -228,6 +237,8 @@ def _run(args: argparse.Namespace) -> int:
         return _montecarlo(args)
     if args.command == "stability":
         return _stability(args)
+    if args.command == "calibrate":
+        return _calibrate(args)
     if args.command == "bench":
         from jaxflex.bench import run_bench
 
@@ -390,21 +401,65 @@ def _montecarlo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _stability(args: argparse.Namespace) -> int:
+def _arm_config(path: str | None):
+    """A config file's values and its arm (``[beam]``; the paper's without one), for the
+    commands that read only the arm and a few keys of a tune or montecarlo config."""
     import dataclasses
 
-    from jaxflex.analysis.stability import delay_steps_of
     from jaxflex.beam import params_from_mapping
     from jaxflex.montecarlo import MCConfig
-    from jaxflex.scenarios import ScenarioSpec
-    from jaxflex.stability_report import run
     from tuning.tuner import TuneConfig
 
-    values = fileio.read_toml(args.config) if args.config else {}
+    values = fileio.read_toml(path) if path else {}
     # A tune or montecarlo config serves: the keys of either are accepted, a misspelt one is
     # refused (it silently left the paper's arm in place).
     fileio.check_keys(values, {f.name for f in dataclasses.fields(TuneConfig)} | {f.name for f in dataclasses.fields(MCConfig)}, "config")
-    arm = params_from_mapping(values.get("beam", {}))
+    return values, params_from_mapping(values.get("beam", {}))
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    from jaxflex import plotting
+    from tuning.calibrate import DEFAULT_FIT, calibrate, to_toml
+
+    values, arm = _arm_config(args.config)
+    fit = args.fit if args.fit is not None else DEFAULT_FIT[: len(args.freqs)]
+    n_modes = args.modes if args.modes is not None or "n_modes" not in values else checks.integer(f"n_modes of {args.config}", values["n_modes"])
+    try:
+        result = calibrate(args.freqs, arm, fit, n_modes, args.hub, args.damping)
+    except ValueError as err:
+        # A message that starts with the core's name of a parameter names its option here.
+        first, _, rest = str(err).partition(" ")
+        options = {"measured_hz": "--freqs", "damping": "--damping", "n_modes": "--modes", "fit": "--fit"}
+        raise ValueError(f"{options[first]} {rest}" if first in options else str(err)) from None
+    print("mode  measured (Hz)  model before  model calibrated  error")
+    for i, (m, b, a) in enumerate(zip(result.measured_hz, result.before_hz, result.after_hz)):
+        print(f"{i + 1:>4}  {m:>13.6g}  {b:>12.6g}  {a:>16.6g}  {100 * (a / m - 1):+.4f} %")
+    for name, start in zip(result.fit, result.start):
+        value = float(getattr(result.beam, name))
+        print(f"{name}: {start:.6g} -> {value:.6g} (x{value / start:.4g})")
+    if result.measured_damping.size:
+        shown = ", ".join(f"{z:.4g}" for z in result.after_damping)
+        measured = ", ".join(f"{z:.4g}" for z in result.measured_damping)
+        print(f"damping ratios: measured {measured}; model {shown} in modes 1-{result.measured_hz.size}")
+    moved = [name for name, start in zip(result.fit, result.start) if not 0.1 <= float(getattr(result.beam, name)) / start <= 10]
+    if moved:
+        print(f"note: {', '.join(moved)} moved by more than 10x from the starting arm: check the units (Hz, not rad/s; SI constants in [beam]) and --hub", file=sys.stderr)
+    owned = ("calibrated.toml", "calibration.json", "calibration.png")
+    with fileio.replace_outputs(args.out, owned, last="calibration.json") as stage:
+        fileio.write_text(os.path.join(stage, "calibrated.toml"), to_toml(result))
+        title = f"Calibration, hub {result.hub}, {result.n_modes} modes: fitted {', '.join(result.fit)}"
+        plotting.save(plotting.calibration(result.measured_hz, result.before_hz, result.after_hz, title), os.path.join(stage, "calibration.png"))
+        fileio.write_json(os.path.join(stage, "calibration.json"), result.as_dict())
+    print(f"wrote {os.path.join(args.out, 'calibrated.toml')} (pass it as --config to tune, montecarlo or stability), calibration.json and calibration.png")
+    return 0
+
+
+def _stability(args: argparse.Namespace) -> int:
+    from jaxflex.analysis.stability import delay_steps_of
+    from jaxflex.scenarios import ScenarioSpec
+    from jaxflex.stability_report import run
+
+    values, arm = _arm_config(args.config)
     scenarios = ScenarioSpec.from_mapping(values.get("scenarios", {}))
     n_modes = args.modes if args.modes is not None else values.get("n_modes", 2)
     dt = args.dt if args.dt is not None else scenarios.dt

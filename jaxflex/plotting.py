@@ -292,3 +292,29 @@ def stability_chart(
     ax.legend(handles=handles, fontsize=7, loc="upper right", framealpha=0.9)
     fig.tight_layout()
     return fig
+
+
+def calibration(measured_hz: np.ndarray, before_hz: np.ndarray, after_hz: np.ndarray, title: str) -> plt.Figure:
+    """Measured natural frequencies against the model's before and after a calibration: the
+    frequencies per mode (log scale over a decade or more), and the model's error in percent of the measured."""
+    modes = np.arange(1, len(measured_hz) + 1)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9.0, 3.6))
+    left.plot(modes, measured_hz, "kx", ms=9, mew=2, label="measured")
+    left.plot(modes, before_hz, "o", mfc="none", color="C1", label="model before")
+    left.plot(modes, after_hz, "o", ms=4, color="C0", label="model calibrated")
+    if max(np.max(measured_hz), np.max(before_hz)) >= 10 * min(np.min(measured_hz), np.min(before_hz)):
+        left.set_yscale("log")
+    left.set_ylabel("Natural frequency (Hz)")
+    width = 0.38
+    for offset, values, label, color in ((-width / 2, before_hz, "model before", "C1"), (width / 2, after_hz, "model calibrated", "C0")):
+        right.bar(modes + offset, 100.0 * (np.asarray(values) / measured_hz - 1.0), width, label=label, color=color)
+    right.axhline(0.0, color="k", lw=0.8)
+    right.set_ylabel("Error (% of measured)")
+    for ax in (left, right):
+        ax.set_xlabel("Mode")
+        ax.set_xticks(modes)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig

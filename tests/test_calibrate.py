@@ -1,0 +1,186 @@
+"""tuning.calibrate and `jaxflex calibrate`: the arm fitted to measured frequencies and damping.
+
+Oracles: the cantilever's exact frequencies (closed form), the arm that made the measured
+frequencies (recovered), central differences (the Jacobian), and scipy's eigenvalues of the
+continuous plant (the damping ratios of the calibrated model).
+"""
+
+import json
+import os
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+
+from jaxflex import cli, fileio
+from jaxflex.beam import BeamParams, clamped_free_roots, natural_frequencies_hz
+from jaxflex.plant import make_plant
+from tuning.calibrate import _model, calibrate, to_toml
+from tuning.tuner import TuneConfig
+
+PAPER = BeamParams()
+
+
+@pytest.mark.parametrize("n_modes", [1, 2, 4])
+def test_clamped_frequencies_are_the_cantilevers(n_modes):
+    arm = BeamParams(length_m=1.2, youngs_modulus_pa=200e9, density_kg_m3=7850.0)
+    ei = arm.youngs_modulus_pa * arm.width_m * arm.thickness_m**3 / 12
+    rho_a = arm.density_kg_m3 * arm.width_m * arm.thickness_m
+    exact = clamped_free_roots(n_modes) ** 2 / (2 * np.pi * arm.length_m**2) * np.sqrt(ei / rho_a)
+    np.testing.assert_allclose(natural_frequencies_hz(arm, n_modes, "clamped"), exact, rtol=1e-12)
+    # the free hub is stiffer than the clamped one in every mode (the hub's inertia is finite)
+    assert np.all(np.asarray(natural_frequencies_hz(arm, n_modes)) > exact)
+
+
+@pytest.mark.parametrize(
+    "true, fit, hub, n_modes",
+    [
+        (PAPER._replace(youngs_modulus_pa=71e9 * 1.3, hub_inertia_kg_m2=5.8598e-4 * 0.7), ("youngs_modulus_pa", "hub_inertia_kg_m2"), "free", 2),
+        (PAPER._replace(youngs_modulus_pa=71e9 * 1.2, density_kg_m3=2710.0 * 0.9), ("youngs_modulus_pa", "density_kg_m3"), "free", 3),
+        (PAPER._replace(youngs_modulus_pa=71e9 * 0.8, payload_mass_kg=0.08), ("youngs_modulus_pa", "payload_mass_kg"), "clamped", 3),
+    ],
+)
+def test_recovers_the_arm_that_made_the_frequencies(true, fit, hub, n_modes):
+    measured = np.asarray(natural_frequencies_hz(true, n_modes, hub))
+    start = PAPER._replace(payload_mass_kg=0.05) if "payload_mass_kg" in fit else PAPER
+    result = calibrate(measured, start, fit, n_modes, hub)
+    for name in fit:
+        np.testing.assert_allclose(getattr(result.beam, name), getattr(true, name), rtol=1e-9, err_msg=name)
+    np.testing.assert_allclose(result.after_hz, measured, rtol=1e-12)
+    np.testing.assert_allclose(result.before_hz, natural_frequencies_hz(start, n_modes, hub), rtol=1e-12)
+    assert result.start == tuple(getattr(start, name) for name in fit)
+    untouched = set(PAPER._fields) - set(fit) - {"damping_ratio", "rayleigh_alpha", "rayleigh_beta"}
+    assert all(getattr(result.beam, name) == getattr(start, name) for name in untouched)
+
+
+def test_fewer_fields_than_frequencies_is_a_least_squares_fit():
+    # E alone against two frequencies whose ratio E cannot change: the fit balances the two
+    # relative errors (equal and opposite, in log), which is the least-squares optimum.
+    true = PAPER._replace(youngs_modulus_pa=90e9, hub_inertia_kg_m2=4e-4)
+    measured = np.asarray(natural_frequencies_hz(true, 2))
+    result = calibrate(measured, PAPER, ("youngs_modulus_pa",))
+    log_error = np.log(result.after_hz / measured)
+    np.testing.assert_allclose(log_error[0] + log_error[1], 0.0, atol=1e-9)  # the solver's tolerance
+    assert abs(log_error[0]) > 1e-3  # not matched exactly: the hub inertia is off
+
+
+def test_jacobian_matches_central_differences():
+    fit = ("youngs_modulus_pa", "hub_inertia_kg_m2", "thickness_m")
+    log_freqs, jacobian = _model(PAPER._replace(payload_mass_kg=0.02), fit, 3, "free", 3)
+    z = jnp.asarray([0.1, -0.2, 0.05])
+    h = 1e-6
+    fd = np.stack([(np.asarray(log_freqs(z + h * e)) - np.asarray(log_freqs(z - h * e))) / (2 * h) for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(jacobian(z), fd, rtol=1e-7, atol=1e-9)
+
+
+@pytest.mark.parametrize("fit", [("youngs_modulus_pa", "density_kg_m3"), ("youngs_modulus_pa", "thickness_m")])
+def test_fields_the_frequencies_cannot_tell_apart_are_refused(fit):
+    # clamped, without a payload: the frequencies depend on E, rho and h only through E h^2 / rho
+    measured = np.asarray(natural_frequencies_hz(PAPER, 2, "clamped")) * 1.1
+    with pytest.raises(ValueError, match=f"do not tell {', '.join(fit)} apart"):
+        calibrate(measured, PAPER, fit, hub="clamped")
+
+
+def _plant_damping(arm: BeamParams, n_modes: int) -> np.ndarray:
+    """Damping ratios of the flexible modes from the continuous plant's eigenvalues (scipy)."""
+    eig = scipy.linalg.eigvals(np.asarray(make_plant(arm, n_modes).A))
+    oscillatory = eig[eig.imag > 1e-6]
+    oscillatory = oscillatory[np.argsort(np.abs(oscillatory))]
+    return -oscillatory.real / np.abs(oscillatory)
+
+
+def test_two_damping_ratios_are_the_plants():
+    measured = np.asarray(natural_frequencies_hz(PAPER, 3)) * 1.05
+    result = calibrate(measured, PAPER, n_modes=3, damping=[0.012, 0.03])
+    assert result.beam.rayleigh_alpha > 0 and result.beam.rayleigh_beta > 0
+    np.testing.assert_allclose(_plant_damping(result.beam, 3)[:2], [0.012, 0.03], rtol=1e-9)
+    np.testing.assert_allclose(result.after_damping, _plant_damping(result.beam, 3), rtol=1e-9)
+
+
+def test_damping_rayleigh_cannot_reach_is_the_nearest_it_can():
+    # mode 2 far less damped than mode 1 would need alpha > 0 and beta < 0: beta stays 0
+    measured = np.asarray(natural_frequencies_hz(PAPER, 2))
+    result = calibrate(measured, PAPER, damping=[0.03, 0.001])
+    assert result.beam.rayleigh_beta == 0.0 and result.beam.rayleigh_alpha > 0
+    np.testing.assert_allclose(result.after_damping, _plant_damping(result.beam, 2), rtol=1e-9)
+    assert result.after_damping[1] > 0.001
+
+
+def test_one_damping_ratio_is_the_damping_ratio():
+    arm = PAPER._replace(rayleigh_alpha=1.0, rayleigh_beta=1e-4)
+    measured = np.asarray(natural_frequencies_hz(arm, 2))
+    result = calibrate(measured, arm, damping=[0.02])
+    assert result.beam.damping_ratio == 0.02 and result.beam.rayleigh_alpha is None and result.beam.rayleigh_beta is None
+    np.testing.assert_allclose(result.after_damping, [0.02, 0.02], rtol=1e-9)  # the 2-mode model's convention
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(measured_hz=[]), "at least one frequency"),
+        (dict(measured_hz=[20.0, 10.0]), "strictly ascending"),
+        (dict(measured_hz=[10.0, np.nan]), "measured_hz must be finite numbers > 0"),
+        (dict(measured_hz=[-1.0, 10.0]), "measured_hz must be finite numbers > 0"),
+        (dict(measured_hz=[[10.0, 20.0]]), "measured_hz must be a sequence"),
+        (dict(measured_hz=["10"]), "measured_hz must be a real number"),
+        (dict(fit=("bogus",)), "fit must name distinct fields among"),
+        (dict(fit="youngs_modulus_pa"), "fit must be a sequence"),
+        (dict(fit=("thickness_m", "thickness_m")), "fit must name distinct fields"),
+        (dict(fit=("youngs_modulus_pa", "hub_inertia_kg_m2", "thickness_m")), "fit names 3 fields but 2 frequencies"),
+        (dict(fit=("payload_mass_kg",)), "payload_mass_kg start"),
+        (dict(n_modes=1), "n_modes must be >= the number of measured frequencies"),
+        (dict(n_modes=0), "n_modes must be an integer >= 1"),
+        (dict(hub="pinned"), "hub must be one of"),
+        (dict(damping=[0.01, 0.02, 0.03]), "damping holds 3 ratios but 2 frequencies"),
+        (dict(damping=[1.0]), r"damping must be finite numbers in \(0, 1\)"),
+        (dict(damping=[0.0]), r"damping must be finite numbers in \(0, 1\)"),
+    ],
+)
+def test_bad_input_is_refused_by_name(kwargs, match):
+    args = dict(measured_hz=[14.0, 40.0], params=PAPER) | kwargs
+    with pytest.raises(ValueError, match=match):
+        calibrate(**args)
+
+
+def test_a_fit_that_runs_off_is_refused():
+    # rad/s read as Hz twice over (and more): E would have to grow by far more than MAX_FACTOR
+    measured = np.asarray(natural_frequencies_hz(PAPER, 2)) * 1e3
+    with pytest.raises(ValueError, match="youngs_modulus_pa to 1000 times its starting value"):
+        calibrate(measured, PAPER, ("youngs_modulus_pa",))
+
+
+def test_toml_reads_back_as_a_config_with_the_measured_frequencies():
+    measured = np.asarray(natural_frequencies_hz(PAPER._replace(youngs_modulus_pa=80e9), 3))
+    result = calibrate(measured, PAPER, ("youngs_modulus_pa",), damping=[0.01, 0.02])
+    import tomllib
+
+    config = TuneConfig.from_mapping(tomllib.loads(to_toml(result)))
+    assert config.n_modes == 3 and config.beam == result.beam
+    np.testing.assert_allclose(natural_frequencies_hz(config.beam, config.n_modes), measured, rtol=1e-12)
+
+
+def test_cli_writes_a_config_the_other_commands_read(tmp_path, capsys):
+    measured = [float(f) for f in natural_frequencies_hz(PAPER._replace(youngs_modulus_pa=60e9, hub_inertia_kg_m2=7e-4), 2)]
+    out = tmp_path / "cal"
+    code = cli.main(["calibrate", "--freqs", *map(str, measured), "--damping", "0.015", "0.025", "--out", str(out)])
+    printed = capsys.readouterr().out
+    assert code == 0 and "youngs_modulus_pa: 7.1e+10 -> 6e+10" in printed
+    assert sorted(os.listdir(out)) == ["calibrated.toml", "calibration.json", "calibration.png"]
+    summary = json.loads((out / "calibration.json").read_text())
+    np.testing.assert_allclose(summary["model_after_hz"], measured, rtol=1e-9)
+    np.testing.assert_allclose(summary["model_damping"], [0.015, 0.025], rtol=1e-9)
+    # the written config is the calibrated arm for stability (its own reader) and tune
+    values, arm = cli._arm_config(str(out / "calibrated.toml"))
+    np.testing.assert_allclose(natural_frequencies_hz(arm, values["n_modes"]), measured, rtol=1e-9)
+    assert TuneConfig.from_mapping(fileio.read_toml(out / "calibrated.toml")).beam == arm
+
+
+def test_cli_names_options_in_its_errors(tmp_path, capsys):
+    assert cli.main(["calibrate", "--freqs", "30", "10", "--out", str(tmp_path / "a")]) == 2
+    assert "error: --freqs must be strictly ascending" in capsys.readouterr().err
+    assert cli.main(["calibrate", "--freqs", "14", "40", "--modes", "1", "--out", str(tmp_path / "b")]) == 2
+    assert "error: --modes must be >= the number" in capsys.readouterr().err
+    assert cli.main(["calibrate", "--freqs", "14", "--fit", "youngs_modulus_pa", "hub_inertia_kg_m2", "--out", str(tmp_path / "c")]) == 2
+    assert "error: --fit names 2 fields but 1 frequency" in capsys.readouterr().err
+    assert not any(os.path.exists(tmp_path / name) for name in "abc")  # nothing left behind

@@ -1,0 +1,239 @@
+"""Fit the arm's constants to what was measured on it: natural frequencies (a tap test) and,
+optionally, modal damping ratios (a ring-down).
+
+Frequencies: nonlinear least squares (``scipy.optimize.least_squares``, trust region) over the
+logarithms of the fitted fields of :class:`~jaxflex.beam.BeamParams`, on the residuals
+``log(f_model / f_measured)``, so that a 1 % error weighs the same at every mode. The model is
+the assumed-mode model that jaxflex simulates, with the number of modes it will be simulated
+with, so the calibrated arm's simulated frequencies are the measured ones (not those of the
+exact beam equation, which the assumed modes approach from above as modes are added). The
+Jacobian is ``jax.jacfwd`` of the same model. The fit runs in float64 whatever the caller's
+JAX setting (a scoped ``jax.enable_x64``).
+
+Frequencies alone do not determine every field: without a hub or a payload the cantilever's
+frequencies depend on ``E``, ``rho`` and the thickness only through ``E h^2 / rho``. A fit whose
+fields are not told apart by the measured frequencies (a Jacobian of rank below the number of
+fields) is refused, naming them.
+
+Damping: with the calibrated model's frequencies ``w_i``, Rayleigh damping gives mode ``i``
+the ratio ``alpha / (2 w_i) + beta w_i / 2`` exactly (the modes of ``M`` and ``K`` diagonalise
+``alpha M + beta K``). Two or more measured ratios fit ``alpha, beta >= 0`` by non-negative
+least squares; a single ratio sets ``damping_ratio`` (jaxflex's convention: that ratio in
+flexible modes 1 and 2 of the 2-mode model).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+
+from jaxflex import beam, checks
+
+FITTABLE = (
+    "length_m",
+    "width_m",
+    "thickness_m",
+    "youngs_modulus_pa",
+    "density_kg_m3",
+    "hub_inertia_kg_m2",
+    "payload_mass_kg",
+    "payload_inertia_kg_m2",
+)
+DEFAULT_FIT = ("youngs_modulus_pa", "hub_inertia_kg_m2")
+MAX_FACTOR = 1e3
+"""A fitted field stays within this factor of its starting value (a bound of the search): a
+fit that reaches it is refused, since it points at a unit slip rather than at the arm."""
+RANK_RTOL = 1e-8
+"""Singular values of the log-Jacobian below this fraction of the largest count as zero."""
+
+
+class Calibration(NamedTuple):
+    """The outcome of :func:`calibrate`.
+
+    Attributes:
+      beam: the calibrated arm (the starting one with the fitted fields, and the damping when
+        ratios were given, replaced).
+      n_modes: number of assumed modes of the model fitted (simulate with this many).
+      hub: ``"free"`` or ``"clamped"``, the condition the frequencies were measured in.
+      fit: the fitted fields.
+      start: their starting values.
+      measured_hz: [n_f] the measured frequencies.
+      before_hz: [n_f] the model's frequencies with the starting arm.
+      after_hz: [n_f] the model's frequencies with the calibrated arm.
+      measured_damping: [n_d] the measured damping ratios of modes 1..n_d (n_d may be 0).
+      after_damping: [n_f] the calibrated model's damping ratio in each measured mode.
+      evaluations: model evaluations the least-squares search took.
+    """
+
+    beam: beam.BeamParams
+    n_modes: int
+    hub: str
+    fit: tuple[str, ...]
+    start: tuple[float, ...]
+    measured_hz: np.ndarray
+    before_hz: np.ndarray
+    after_hz: np.ndarray
+    measured_damping: np.ndarray
+    after_damping: np.ndarray
+    evaluations: int
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain numbers for JSON."""
+        return {
+            "n_modes": self.n_modes,
+            "hub": self.hub,
+            "fitted": {name: {"start": start, "calibrated": float(getattr(self.beam, name))} for name, start in zip(self.fit, self.start)},
+            "measured_hz": self.measured_hz.tolist(),
+            "model_before_hz": self.before_hz.tolist(),
+            "model_after_hz": self.after_hz.tolist(),
+            "error_after_percent": (100.0 * (self.after_hz / self.measured_hz - 1.0)).tolist(),
+            "measured_damping": self.measured_damping.tolist(),
+            "model_damping": self.after_damping.tolist(),
+            "evaluations": self.evaluations,
+            "beam": {k: (None if v is None else float(v)) for k, v in self.beam._asdict().items()},
+        }
+
+
+def _numbers(name: str, values: Any, high: float | None = None) -> np.ndarray:
+    """``values`` (a number or a 1-D sequence) as float64, each finite, > 0 (and < ``high``)."""
+    if np.ndim(values) > 1:
+        raise ValueError(f"{name} must be a sequence of numbers; got shape {np.shape(values)}")
+    arr = checks.real_array(name, values).astype(np.float64).reshape(-1)
+    if np.any(~np.isfinite(arr) | (arr <= 0) | (arr >= (np.inf if high is None else high))):
+        accepted = "> 0" if high is None else f"in (0, {high:g})"
+        raise ValueError(f"{name} must be finite numbers {accepted}; got {arr.tolist()}")
+    return arr
+
+
+def _check(measured_hz: Any, params: beam.BeamParams, fit: Sequence[str], n_modes: int | None, hub: str, damping: Any) -> tuple[np.ndarray, tuple[str, ...], int, np.ndarray]:
+    beam.check_beam_params(params)
+    measured = _numbers("measured_hz", measured_hz)
+    if measured.size == 0:
+        raise ValueError("measured_hz must hold at least one frequency (Hz)")
+    if np.any(np.diff(measured) <= 0):
+        raise ValueError(f"measured_hz must be strictly ascending, mode 1 first (Hz); got {measured.tolist()}")
+    if hub not in beam.HUBS:
+        raise ValueError(f"hub must be one of {beam.HUBS}; got {hub!r}")
+    if isinstance(fit, str) or not all(isinstance(name, str) for name in fit):
+        raise ValueError(f"fit must be a sequence of field names of BeamParams; got {fit!r}")
+    fit = tuple(fit)
+    unknown = [name for name in fit if name not in FITTABLE]
+    if unknown or not fit or len(set(fit)) != len(fit):
+        raise ValueError(f"fit must name distinct fields among {', '.join(FITTABLE)}; got {list(fit)}")
+    if len(fit) > measured.size:
+        raise ValueError(f"fit names {len(fit)} fields but {measured.size} frequenc{'y was' if measured.size == 1 else 'ies were'} measured: fit at most {measured.size}")
+    zero = [name for name in fit if float(getattr(params, name)) <= 0]
+    if zero:
+        raise ValueError(f"{', '.join(zero)} start(s) at 0: give a positive starting value in the arm ([beam]) to fit it")
+    n_modes = max(2, measured.size) if n_modes is None else beam.check_n_modes(n_modes)
+    if n_modes < measured.size:
+        raise ValueError(f"n_modes must be >= the number of measured frequencies ({measured.size}); got {n_modes}")
+    ratios = np.zeros(0) if damping is None else _numbers("damping", damping, 1.0)
+    if ratios.size > measured.size:
+        raise ValueError(f"damping holds {ratios.size} ratios but {measured.size} frequencies were measured: give at most one ratio per measured mode, mode 1 first")
+    return measured, fit, n_modes, ratios
+
+
+def _model(params: beam.BeamParams, fit: tuple[str, ...], n_modes: int, hub: str, n_f: int):
+    """``log f_model(z)[:n_f]`` with field ``i`` of ``fit`` at ``start_i exp(z_i)``, and its Jacobian."""
+    start = jnp.asarray([float(getattr(params, name)) for name in fit], jnp.float64)
+
+    def log_freqs(z: jax.Array) -> jax.Array:
+        arm = params._replace(**{name: value for name, value in zip(fit, start * jnp.exp(z))})
+        return jnp.log(beam.natural_frequencies_hz(arm, n_modes, hub)[:n_f])
+
+    return jax.jit(log_freqs), jax.jit(jax.jacfwd(log_freqs))
+
+
+def calibrate(
+    measured_hz: Any,
+    params: beam.BeamParams | None = None,
+    fit: Sequence[str] = DEFAULT_FIT,
+    n_modes: int | None = None,
+    hub: str = "free",
+    damping: Any = None,
+) -> Calibration:
+    """Fit ``fit``'s fields of ``params`` so that the n-mode model has the measured frequencies.
+
+    Args:
+      measured_hz: [n_f] measured natural frequencies (Hz) of flexible modes 1..n_f, ascending.
+      params: the arm as known before the fit (geometry, material; default the paper's): the
+        starting point, and the value of every field not fitted.
+      fit: fields to fit, at most n_f, each starting from a positive value (``FITTABLE``).
+      n_modes: assumed modes of the model (default ``max(2, n_f)``; at least n_f). Simulate
+        the calibrated arm with the same number.
+      hub: the condition the frequencies were measured in: ``"free"`` (motor unpowered) or
+        ``"clamped"`` (hub held still); see :func:`jaxflex.beam.natural_frequencies_hz`.
+      damping: optional [n_d <= n_f] measured damping ratios of modes 1..n_d, each in (0, 1).
+
+    Raises:
+      ValueError: naming a bad input; fields that the measured frequencies do not tell apart;
+        or a fit that ran to ``MAX_FACTOR`` times a starting value.
+    """
+    params = beam.BeamParams() if params is None else params
+    measured, fit, n_modes, ratios = _check(measured_hz, params, fit, n_modes, hub, damping)
+    start = tuple(float(getattr(params, name)) for name in fit)
+    with jax.enable_x64(True):
+        log_freqs, jacobian = _model(params, fit, n_modes, hub, measured.size)
+        target = np.log(measured)
+        z0 = np.zeros(len(fit))
+        sv = np.linalg.svd(np.asarray(jacobian(z0)), compute_uv=False)
+        if sv[-1] <= RANK_RTOL * sv[0]:
+            raise ValueError(
+                f"the measured frequencies do not tell {', '.join(fit)} apart (with the hub {hub}, the model's frequencies "
+                f"change with them in fixed proportion): fit fewer fields, or fields that act differently"
+            )
+        bound = np.log(MAX_FACTOR)
+        result = scipy.optimize.least_squares(
+            lambda z: np.asarray(log_freqs(z)) - target,
+            z0,
+            jac=lambda z: np.asarray(jacobian(z)),
+            bounds=(-bound, bound),
+            x_scale="jac",
+            ftol=1e-15,
+            xtol=1e-15,
+            gtol=1e-15,
+            max_nfev=200,
+        )
+        at_bound = [name for name, z in zip(fit, result.x) if abs(z) >= bound * (1 - 1e-9)]
+        if at_bound:
+            raise ValueError(
+                f"the fit took {', '.join(at_bound)} to {MAX_FACTOR:g} times its starting value: check the units of the "
+                f"measured frequencies (Hz) and of the arm's constants, and whether the hub was {hub}"
+            )
+        arm = params._replace(**{name: float(s * np.exp(z)) for name, s, z in zip(fit, start, result.x)})
+        before = np.asarray(beam.natural_frequencies_hz(params, n_modes, hub), np.float64)[: measured.size]
+        after = np.asarray(beam.natural_frequencies_hz(arm, n_modes, hub), np.float64)[: measured.size]
+        arm, model_damping = _fit_damping(arm, after, ratios, n_modes, hub)
+    return Calibration(arm, n_modes, hub, fit, start, measured, before, after, ratios, model_damping, int(result.nfev))
+
+
+def _fit_damping(arm: beam.BeamParams, model_hz: np.ndarray, ratios: np.ndarray, n_modes: int, hub: str) -> tuple[beam.BeamParams, np.ndarray]:
+    """The arm with the measured damping, and the damping ratio of its model in each measured mode."""
+    omega = 2.0 * np.pi * model_hz
+    if ratios.size == 1:
+        arm = arm._replace(damping_ratio=float(ratios[0]), rayleigh_alpha=None, rayleigh_beta=None)
+    elif ratios.size >= 2:
+        basis = np.stack([0.5 / omega[: ratios.size], 0.5 * omega[: ratios.size]], axis=1)
+        scale = np.linalg.norm(basis, axis=0)
+        coef, _ = scipy.optimize.nnls(basis / scale, ratios)
+        alpha, beta = coef / scale
+        arm = arm._replace(rayleigh_alpha=float(alpha), rayleigh_beta=float(beta))
+    alpha, beta = (float(c) for c in beam.rayleigh_coefficients(arm))
+    return arm, alpha / (2.0 * omega) + beta * omega / 2.0
+
+
+def to_toml(calibration: Calibration) -> str:
+    """A config holding the calibrated arm: ``n_modes`` and a ``[beam]`` table with every
+    field, readable as ``--config`` by ``jaxflex tune``, ``montecarlo`` and ``stability``."""
+    fields = "\n".join(f"{name} = {float(value)!r}" for name, value in calibration.beam._asdict().items() if value is not None)
+    measured = ", ".join(f"{f:g}" for f in calibration.measured_hz)
+    return (
+        f"# jaxflex calibrate: the arm fitted to {measured} Hz (hub {calibration.hub}) with {calibration.n_modes} assumed modes.\n"
+        "# Pass it as --config to jaxflex tune, montecarlo or stability, or copy n_modes and [beam] into your config.\n"
+        f"n_modes = {calibration.n_modes}\n\n[beam]\n{fields}\n"
+    )
