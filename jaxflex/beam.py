@@ -153,9 +153,15 @@ def plain_params(params: Any) -> BeamParams:
     return params_from_mapping({key: value for key, value in params._asdict().items() if value is not None or not key.startswith("rayleigh")})
 
 
+MAX_MODES = 100
+"""The most assumed modes: the mode shapes' constants overflow float64 from mode 227 on, and
+mode 100 of the paper's arm is already at 91 kHz."""
+
+
 def check_n_modes(n_modes: int) -> int:
-    """The number of assumed modes must be a Python int >= 1 (it sets array shapes)."""
-    return checks.integer("n_modes", n_modes)
+    """The number of assumed modes must be a Python int in [1, ``MAX_MODES``] (it sets array
+    shapes)."""
+    return checks.integer("n_modes", n_modes, high=MAX_MODES)
 
 
 @lru_cache(maxsize=None)

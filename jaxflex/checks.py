@@ -20,10 +20,12 @@ SEED_RANGE = (-(2**63), 2**63)
 """Seeds are stored as 64-bit integers: ``[-2**63, 2**63)``."""
 
 
-def integer(name: str, value: Any, low: int = 1, unit: str = "") -> int:
-    """``value`` as an int >= ``low``; ``unit`` (e.g. ``"samples"``) is named in the message."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
-        raise ValueError(f"{name} must be an integer >= {low}{f' ({unit})' if unit else ''}; got {value!r}")
+def integer(name: str, value: Any, low: int = 1, unit: str = "", high: int | None = None) -> int:
+    """``value`` as an int >= ``low`` (and <= ``high``); ``unit`` (e.g. ``"samples"``) is
+    named in the message."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low or (high is not None and value > high):
+        bound = f">= {low}" if high is None else f"in [{low}, {high}]"
+        raise ValueError(f"{name} must be an integer {bound}{f' ({unit})' if unit else ''}; got {value!r}")
     return int(value)
 
 

@@ -118,9 +118,15 @@ class PadeDiscrete(NamedTuple):
 HOLDS = ("foh", "zoh")
 
 
+MAX_ORDER = 100
+"""The highest order whose poles are checked (and found in a few seconds); higher ones take
+minutes (21 s at 150) and gain nothing a sampled loop can use."""
+
+
 def check_order(order: int) -> int:
-    """The order sets array shapes, so it must be an integer >= 1 (returned as an int)."""
-    return checks.integer("pade_order", order)
+    """The order sets array shapes, so it must be an integer in [1, ``MAX_ORDER``] (returned
+    as an int)."""
+    return checks.integer("pade_order", order, high=MAX_ORDER)
 
 
 def _monic_denominator(order: int) -> list[int]:

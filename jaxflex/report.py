@@ -299,7 +299,7 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
         raise ValueError(f"--params: {path} must hold 'controller' (one of {TUNED_CONTROLLERS}) and 'params'")
     config = data.get("config", {}) if isinstance(data.get("config"), dict) else {}
     needed = PARAMETERS[name]
-    missing = [n for n in needed if not isinstance(named.get(n), (int, float))]
+    missing = [n for n in needed if isinstance(named.get(n), bool) or not isinstance(named.get(n), (int, float))]
     if missing:
         raise ValueError(f"--params: {path} lacks numeric parameter(s) {missing} for {name}")
     values = {n: float(named[n]) for n in needed}

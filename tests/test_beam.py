@@ -195,9 +195,9 @@ def test_a_dict_of_fields_is_refused_by_name():
         beam.plain_params(BeamParams(thickness_m=None))
 
 
-@pytest.mark.parametrize("n", [0, -1, 2.0, True])
+@pytest.mark.parametrize("n", [0, -1, 2.0, True, 101, 227])
 def test_bad_mode_count_is_rejected(n):
-    with pytest.raises(ValueError, match="n_modes must be an integer >= 1"):
+    with pytest.raises(ValueError, match="n_modes must be an integer in \\[1, 100\\]"):
         beam.natural_frequencies_hz(BeamParams(), n)
 
 
@@ -295,3 +295,8 @@ def test_mode_shapes_refuse_positions_just_off_the_beam(positions):
     with pytest.raises(ValueError, match=r"x_over_l must lie in \[0, 1\]"):
         beam.mode_shapes(np.array(positions), 2)
     beam.mode_shapes(np.array([0.0, 1.0]), 2)  # both ends are on the beam
+
+
+def test_the_most_modes_accepted_are_computed():
+    freqs = np.asarray(beam.natural_frequencies_hz(BeamParams(), beam.MAX_MODES))
+    assert np.all(np.isfinite(freqs)) and np.all(np.diff(freqs) > 0)

@@ -168,3 +168,11 @@ def test_default_buffer_holds_64_samples():
     controller, params = by_name("dfs", dt=1e-3, params={"tau_s": 0.065})
     with pytest.raises(ValueError, match="tau_s"):
         controller.check(params)
+
+
+@pytest.mark.parametrize("k", [True, "55", None])
+def test_a_tuned_json_gain_that_is_not_a_number_is_refused(tmp_path, k):
+    path = tmp_path / "tuned.json"
+    path.write_text(json.dumps({"controller": "dfs", "params": {"k": k, "tau_s": 0.005}}))
+    with pytest.raises(ValueError, match=r"lacks numeric parameter\(s\) \['k'\] for dfs"):
+        report.load_tuned(path)

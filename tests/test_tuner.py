@@ -436,9 +436,13 @@ def test_bad_input_is_refused(tmp_path):
         sample_scenarios(ScenarioSpec(), jax.random.key(0), 0)
     # an objective that becomes NaN/inf stops with a clear message and keeps the last checkpoint
     cfg = TuneConfig(controller="dfs", steps=10, checkpoint_every=1, learning_rate=50.0, clip_norm=1e6, **SHARED)
-    with pytest.raises(ValueError, match="the objective became"):
+    with pytest.raises(ValueError, match="the objective became .* at step .*: lower learning_rate"):
         tune(cfg, tmp_path, progress=False)
     assert (tmp_path / CHECKPOINT).exists()
+    # NaN where the run starts: no update was taken, so the learning rate is not blamed
+    cfg = TuneConfig(controller="dfs", steps=2, initial={"k": 1e300}, **SHARED)
+    with pytest.raises(ValueError, match=r"the objective is nan at the starting parameters, before any update: check \[initial\]"):
+        tune(cfg, tmp_path / "start", progress=False)
 
 
 @pytest.mark.parametrize("best_step", [0, 3])
@@ -522,10 +526,17 @@ def test_tuned_json_is_there_only_for_a_finished_run(tmp_path, monkeypatch):
     assert not (tmp_path / "tuned.json").exists()
 
 
-def test_resume_from_an_unreadable_checkpoint_is_refused(tmp_path):
-    (tmp_path / CHECKPOINT).write_bytes(b"not a zip file")
-    with pytest.raises(ValueError, match="--resume: cannot read the checkpoint"):
+@pytest.mark.parametrize("meta", [b"", b"not a zip file", json.dumps({"step": 3}).encode(), json.dumps([1, 2]).encode()])
+def test_resume_from_an_unreadable_checkpoint_is_refused(tmp_path, meta):
+    path = tmp_path / CHECKPOINT
+    if not meta.startswith((b"{", b"[")):
+        path.write_bytes(meta)  # empty, or not an archive
+    else:  # an archive whose metadata lacks the fingerprint, or is not a mapping
+        with open(path, "wb") as f:
+            np.savez(f, meta=np.frombuffer(meta, dtype=np.uint8))
+    with pytest.raises(ValueError, match=f"--resume: {path} is damaged or not a checkpoint of jaxflex tune") as err:
         tune(TuneConfig(controller="dfs", steps=1, **SMALL), tmp_path, resume=True, progress=False)
+    assert "pickle" not in str(err.value)
 
 
 def test_command_line_flags_beat_the_config_file():

@@ -250,15 +250,23 @@ def _save_checkpoint(path: str, state: dict[str, Any]) -> None:
 
 
 def _load_checkpoint(path: str, template: tuple[Any, Any, Any] | None = None) -> dict[str, Any]:
-    """The checkpoint's metadata and, given a ``template`` (raw, opt_state, best_raw), its arrays."""
+    """The checkpoint's metadata and, given a ``template`` (raw, opt_state, best_raw), its arrays.
+
+    Raises:
+      ValueError: naming the file when it is damaged or not a checkpoint of ``tune`` (empty,
+        truncated, another kind of file, metadata without its fingerprint and step).
+    """
+    damaged = f"--resume: {path} is damaged or not a checkpoint of jaxflex tune"
     try:
-        with np.load(path) as data:
+        with np.load(path, allow_pickle=False) as data:
             state = json.loads(bytes(data["meta"]).decode())
             if template is not None:
                 treedef = jax.tree.structure(template)
                 leaves = [jnp.asarray(data[f"leaf_{i}"]) for i in range(treedef.num_leaves)]
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:
-        raise ValueError(f"--resume: cannot read the checkpoint {path} ({type(err).__name__}: {err}); start a new run in another --out") from None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{damaged} ({type(err).__name__}); start a new run in another --out") from None
+    if not isinstance(state, dict) or not {"fingerprint", "step"} <= state.keys():
+        raise ValueError(f"{damaged} (its metadata lacks the run's fingerprint and step); start a new run in another --out")
     if template is not None:
         state["raw"], state["opt_state"], state["best_raw"] = jax.tree.unflatten(treedef, leaves)
     return state
@@ -375,9 +383,12 @@ def tune(
                 raw, opt_state, info = problem.train_step(at, state["opt_state"], problem.train)
                 loss, grad_norm = float(info["loss"]), float(info["grad_norm"])
                 if not (math.isfinite(loss) and math.isfinite(grad_norm)):
-                    what = f"the objective became {loss}" if not math.isfinite(loss) else f"the gradient norm became {grad_norm}"
+                    became = "is" if n == 0 else "became"
+                    what = f"the objective {became} {loss}" if not math.isfinite(loss) else f"the gradient norm {became} {grad_norm}"
                     kept = f"the last checkpoint in {out_dir} is kept" if os.path.exists(ckpt_path) else f"no checkpoint was written yet (every {config.checkpoint_every} steps)"
-                    raise ValueError(f"{what} at step {state['step'] + 1}: lower learning_rate or clip_norm, or check the scenarios; {kept}")
+                    if n == 0:  # no update has been taken: the learning rate is not the cause
+                        raise ValueError(f"{what} at the starting parameters, before any update: check [initial], [objective] and [scenarios]; {kept}")
+                    raise ValueError(f"{what} at step {n + 1}: lower learning_rate or clip_norm, or check the scenarios; {kept}")
                 state["raw"], state["opt_state"], state["step"] = raw, opt_state, n + 1
             row = {"step": n, **{k: float(v) for k, v in info.items()}}
             row.update(problem.tc.named(problem.tc.to_physical(at)))
