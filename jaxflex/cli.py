@@ -9,6 +9,7 @@ import time
 from typing import Sequence
 
 from jaxflex import checks, fileio
+from jaxflex.beam import HUBS
 from jaxflex.controllers.registry import NAMES
 
 
@@ -89,8 +90,8 @@ def _parser() -> argparse.ArgumentParser:
     cal = sub.add_parser("calibrate", help="fit the arm's constants to measured natural frequencies (and damping ratios); writes a config for the other commands")
     cal.add_argument("--freqs", type=float, nargs="+", required=True, metavar="HZ", help="measured natural frequencies of flexible modes 1, 2, ... (Hz, ascending)")
     cal.add_argument("--damping", type=float, nargs="+", default=None, metavar="RATIO", help="measured damping ratios of modes 1, 2, ... (each in (0, 1); at most one per frequency)")
-    cal.add_argument("--fit", nargs="+", default=None, metavar="FIELD", help="[beam] fields to fit, at most one per frequency (default: youngs_modulus_pa hub_inertia_kg_m2, or the first with one frequency)")
-    cal.add_argument("--hub", choices=("free", "clamped"), default="free", help="how the arm was held when measured: free (motor unpowered; default) or clamped (hub held still)")
+    cal.add_argument("--fit", nargs="+", default=None, metavar="FIELD", help="[beam] fields to fit, at most one per frequency (default: youngs_modulus_pa and, with the hub free and two or more frequencies, hub_inertia_kg_m2)")
+    cal.add_argument("--hub", choices=HUBS, default="free", help="how the arm was held when measured: free (motor unpowered; default) or clamped (hub held still)")
     cal.add_argument("--modes", type=_positive_int, default=None, help="assumed modes of the model (default: the config's n_modes, else max(2, number of frequencies))")
     cal.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the starting arm (default the paper's), its n_modes the default of --modes")
     cal.add_argument("--out", default="calibration", help="output folder (default ./calibration)")
@@ -202,6 +203,12 @@ def _check_out(path: str) -> None:
         raise ValueError("--out must name a folder; got ''")
     if os.path.exists(path) and not os.path.isdir(path):
         raise ValueError(f"--out {path!r} is a file, not a folder")
+    # Made now, so that a path that cannot be a folder is refused before the work (main()
+    # removes it again when the run leaves it empty).
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out {path!r}: cannot make the folder ({err.strerror or err})") from None
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -402,8 +409,9 @@ def _montecarlo(args: argparse.Namespace) -> int:
 
 
 def _arm_config(path: str | None):
-    """A config file's values and its arm (``[beam]``; the paper's without one), for the
-    commands that read only the arm and a few keys of a tune or montecarlo config."""
+    """A config file's values, its arm (``[beam]``; the paper's without one) and its
+    ``n_modes`` (None without one), for the commands that read only the arm and a few keys of
+    a tune or montecarlo config."""
     import dataclasses
 
     from jaxflex.beam import params_from_mapping
@@ -414,33 +422,37 @@ def _arm_config(path: str | None):
     # A tune or montecarlo config serves: the keys of either are accepted, a misspelt one is
     # refused (it silently left the paper's arm in place).
     fileio.check_keys(values, {f.name for f in dataclasses.fields(TuneConfig)} | {f.name for f in dataclasses.fields(MCConfig)}, "config")
-    return values, params_from_mapping(values.get("beam", {}))
+    n_modes = checks.integer(f"n_modes of {path}", values["n_modes"]) if "n_modes" in values else None
+    return values, params_from_mapping(values.get("beam", {})), n_modes
 
 
 def _calibrate(args: argparse.Namespace) -> int:
     from jaxflex import plotting
-    from tuning.calibrate import DEFAULT_FIT, calibrate, to_toml
+    from tuning.calibrate import calibrate, to_toml
 
-    values, arm = _arm_config(args.config)
-    fit = args.fit if args.fit is not None else DEFAULT_FIT[: len(args.freqs)]
-    n_modes = args.modes if args.modes is not None or "n_modes" not in values else checks.integer(f"n_modes of {args.config}", values["n_modes"])
+    _, arm, config_modes = _arm_config(args.config)
     try:
-        result = calibrate(args.freqs, arm, fit, n_modes, args.hub, args.damping)
+        result = calibrate(args.freqs, arm, args.fit, args.modes if args.modes is not None else config_modes, args.hub, args.damping)
     except ValueError as err:
         # A message that starts with the core's name of a parameter names its option here.
         first, _, rest = str(err).partition(" ")
-        options = {"measured_hz": "--freqs", "damping": "--damping", "n_modes": "--modes", "fit": "--fit"}
+        modes = "--modes" if args.modes is not None or config_modes is None else f"n_modes of {args.config}"
+        options = {"measured_hz": "--freqs", "damping": "--damping", "n_modes": modes, "fit": "--fit"}
         raise ValueError(f"{options[first]} {rest}" if first in options else str(err)) from None
     print("mode  measured (Hz)  model before  model calibrated  error")
     for i, (m, b, a) in enumerate(zip(result.measured_hz, result.before_hz, result.after_hz)):
-        print(f"{i + 1:>4}  {m:>13.6g}  {b:>12.6g}  {a:>16.6g}  {100 * (a / m - 1):+.4f} %")
-    for name, start in zip(result.fit, result.start):
+        error = 100 * (a / m - 1)
+        print(f"{i + 1:>4}  {m:>13.6g}  {b:>12.6g}  {a:>16.6g}  {0.0 if abs(error) < 5e-5 else error:+.4f} %")
+    for name, start, sensitivity in zip(result.fit, result.start, result.sensitivity):
         value = float(getattr(result.beam, name))
-        print(f"{name}: {start:.6g} -> {value:.6g} (x{value / start:.4g})")
+        print(f"{name}: {start:.6g} -> {value:.6g} (x{value / start:.4g}; {sensitivity:.3g} % per 1 % error in the frequencies)")
     if result.measured_damping.size:
         shown = ", ".join(f"{z:.4g}" for z in result.after_damping)
         measured = ", ".join(f"{z:.4g}" for z in result.measured_damping)
         print(f"damping ratios: measured {measured}; model {shown} in modes 1-{result.measured_hz.size}")
+    loose = [name for name, sensitivity in zip(result.fit, result.sensitivity) if sensitivity > 10]
+    if loose:
+        print(f"note: the measured frequencies determine {', '.join(loose)} poorly (over 10 % per 1 % error in them): fit fewer fields, or measure more modes", file=sys.stderr)
     moved = [name for name, start in zip(result.fit, result.start) if not 0.1 <= float(getattr(result.beam, name)) / start <= 10]
     if moved:
         print(f"note: {', '.join(moved)} moved by more than 10x from the starting arm: check the units (Hz, not rad/s; SI constants in [beam]) and --hub", file=sys.stderr)
@@ -459,9 +471,9 @@ def _stability(args: argparse.Namespace) -> int:
     from jaxflex.scenarios import ScenarioSpec
     from jaxflex.stability_report import run
 
-    values, arm = _arm_config(args.config)
+    values, arm, config_modes = _arm_config(args.config)
     scenarios = ScenarioSpec.from_mapping(values.get("scenarios", {}))
-    n_modes = args.modes if args.modes is not None else values.get("n_modes", 2)
+    n_modes = args.modes if args.modes is not None else config_modes or 2
     dt = args.dt if args.dt is not None else scenarios.dt
     print(_model_line(arm, n_modes, dt), file=sys.stderr)
     if args.tau is None:

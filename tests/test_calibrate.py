@@ -14,7 +14,7 @@ import pytest
 import scipy.linalg
 
 from jaxflex import cli, fileio
-from jaxflex.beam import BeamParams, clamped_free_roots, natural_frequencies_hz
+from jaxflex.beam import BeamParams, clamped_free_roots, modal_matrices, natural_frequencies_hz
 from jaxflex.plant import make_plant
 from tuning.calibrate import _model, calibrate, to_toml
 from tuning.tuner import TuneConfig
@@ -111,8 +111,9 @@ def test_one_damping_ratio_is_the_damping_ratio():
     arm = PAPER._replace(rayleigh_alpha=1.0, rayleigh_beta=1e-4)
     measured = np.asarray(natural_frequencies_hz(arm, 2))
     result = calibrate(measured, arm, damping=[0.02])
-    assert result.beam.damping_ratio == 0.02 and result.beam.rayleigh_alpha is None and result.beam.rayleigh_beta is None
-    np.testing.assert_allclose(result.after_damping, [0.02, 0.02], rtol=1e-9)  # the 2-mode model's convention
+    np.testing.assert_allclose(result.beam.damping_ratio, 0.02, rtol=1e-12)  # free hub, 2 modes: the convention's own model
+    assert result.beam.rayleigh_alpha is None and result.beam.rayleigh_beta is None
+    np.testing.assert_allclose(result.after_damping, [0.02, 0.02], rtol=1e-9)
 
 
 @pytest.mark.parametrize(
@@ -125,7 +126,10 @@ def test_one_damping_ratio_is_the_damping_ratio():
         (dict(measured_hz=[[10.0, 20.0]]), "measured_hz must be a sequence"),
         (dict(measured_hz=["10"]), "measured_hz must be a real number"),
         (dict(fit=("bogus",)), "fit must name distinct fields among"),
-        (dict(fit="youngs_modulus_pa"), "fit must be a sequence"),
+        (dict(fit="youngs_modulus_pa"), "fit must be a list or tuple"),
+        (dict(fit={"youngs_modulus_pa": 1}), "fit must be a list or tuple"),
+        (dict(measured_hz=[14.0, [40.0]]), "measured_hz must be a real number"),
+        (dict(params=PAPER._replace(youngs_modulus_pa=np.array([70e9, 71e9]))), "youngs_modulus_pa must be a number in the arm"),
         (dict(fit=("thickness_m", "thickness_m")), "fit must name distinct fields"),
         (dict(fit=("youngs_modulus_pa", "hub_inertia_kg_m2", "thickness_m")), "fit names 3 fields but 2 frequencies"),
         (dict(fit=("payload_mass_kg",)), "payload_mass_kg start"),
@@ -143,10 +147,11 @@ def test_bad_input_is_refused_by_name(kwargs, match):
         calibrate(**args)
 
 
-def test_a_fit_that_runs_off_is_refused():
-    # rad/s read as Hz twice over (and more): E would have to grow by far more than MAX_FACTOR
-    measured = np.asarray(natural_frequencies_hz(PAPER, 2)) * 1e3
-    with pytest.raises(ValueError, match="youngs_modulus_pa to 1000 times its starting value"):
+@pytest.mark.parametrize("factor", [1e3, 1e-3])
+def test_a_fit_that_runs_off_is_refused(factor):
+    # kHz read as Hz, or the reverse: E would have to move by 1e6, far beyond MAX_FACTOR
+    measured = np.asarray(natural_frequencies_hz(PAPER, 2)) * factor
+    with pytest.raises(ValueError, match=r"youngs_modulus_pa to 1000 times \(or 1/1000 of\) its starting value"):
         calibrate(measured, PAPER, ("youngs_modulus_pa",))
 
 
@@ -171,8 +176,8 @@ def test_cli_writes_a_config_the_other_commands_read(tmp_path, capsys):
     np.testing.assert_allclose(summary["model_after_hz"], measured, rtol=1e-9)
     np.testing.assert_allclose(summary["model_damping"], [0.015, 0.025], rtol=1e-9)
     # the written config is the calibrated arm for stability (its own reader) and tune
-    values, arm = cli._arm_config(str(out / "calibrated.toml"))
-    np.testing.assert_allclose(natural_frequencies_hz(arm, values["n_modes"]), measured, rtol=1e-9)
+    _, arm, n_modes = cli._arm_config(str(out / "calibrated.toml"))
+    np.testing.assert_allclose(natural_frequencies_hz(arm, n_modes), measured, rtol=1e-9)
     assert TuneConfig.from_mapping(fileio.read_toml(out / "calibrated.toml")).beam == arm
 
 
@@ -183,4 +188,54 @@ def test_cli_names_options_in_its_errors(tmp_path, capsys):
     assert "error: --modes must be >= the number" in capsys.readouterr().err
     assert cli.main(["calibrate", "--freqs", "14", "--fit", "youngs_modulus_pa", "hub_inertia_kg_m2", "--out", str(tmp_path / "c")]) == 2
     assert "error: --fit names 2 fields but 1 frequency" in capsys.readouterr().err
-    assert not any(os.path.exists(tmp_path / name) for name in "abc")  # nothing left behind
+    config = tmp_path / "one_mode.toml"
+    config.write_text("n_modes = 1\n")
+    assert cli.main(["calibrate", "--freqs", "14", "40", "--config", str(config), "--out", str(tmp_path / "d")]) == 2
+    assert f"error: n_modes of {config} must be >= the number" in capsys.readouterr().err
+    assert cli.main(["calibrate", "--freqs", "14", "--out", str(config / "e")]) == 2  # under a file
+    assert "error: --out" in capsys.readouterr().err
+    assert not any(os.path.exists(tmp_path / name) for name in "abcd")  # nothing left behind
+
+
+def _clamped_damping(arm: BeamParams, n_modes: int) -> np.ndarray:
+    """Damping ratios of the hub-held model from scipy's eigenvalues of its flexible block."""
+    m = modal_matrices(arm, n_modes)
+    M, K, D = (np.asarray(a)[1:, 1:] for a in (m.M, m.K, m.D))
+    A = np.block([[np.zeros_like(M), np.eye(n_modes)], [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]])
+    eig = scipy.linalg.eigvals(A)
+    eig = eig[eig.imag > 0][np.argsort(np.abs(eig[eig.imag > 0]))]
+    return -eig.real / np.abs(eig)
+
+
+@pytest.mark.parametrize("hub, n_modes", [("free", 3), ("clamped", 2), ("clamped", 4)])
+def test_one_damping_ratio_is_mode_ones(hub, n_modes):
+    arm = PAPER._replace(payload_mass_kg=0.05)
+    measured = np.asarray(natural_frequencies_hz(arm, n_modes, hub))[:2] * 1.1
+    result = calibrate(measured, arm, n_modes=n_modes, hub=hub, damping=[0.02])
+    model = _plant_damping(result.beam, n_modes) if hub == "free" else _clamped_damping(result.beam, n_modes)
+    np.testing.assert_allclose(model[0], 0.02, rtol=1e-9)
+    np.testing.assert_allclose(result.after_damping, model[:2], rtol=1e-9)
+
+
+def test_clamped_defaults_fit_what_acts_and_refuses_what_does_not():
+    measured = np.asarray(natural_frequencies_hz(PAPER._replace(youngs_modulus_pa=80e9), 2, "clamped"))
+    result = calibrate(measured, PAPER, hub="clamped")
+    assert result.fit == ("youngs_modulus_pa",)
+    np.testing.assert_allclose(result.beam.youngs_modulus_pa, 80e9, rtol=1e-9)
+    with pytest.raises(ValueError, match="hub_inertia_kg_m2 does not change the model's frequencies with the hub clamped"):
+        calibrate(measured, PAPER, ("youngs_modulus_pa", "hub_inertia_kg_m2"), hub="clamped")
+
+
+def test_sensitivity_is_the_first_order_change_of_a_refit():
+    # a geared hub: its inertia is felt little in the frequencies, so it is poorly determined
+    start = PAPER._replace(hub_inertia_kg_m2=5.0)
+    measured = np.asarray(natural_frequencies_hz(start, 2))
+    result = calibrate(measured, start)
+    h = 1e-5
+    moves = []
+    for j in range(2):
+        nudged = measured * np.exp(h * np.eye(2)[j])
+        refit = calibrate(nudged, start)
+        moves.append([np.log(getattr(refit.beam, name) / getattr(result.beam, name)) / h for name in result.fit])
+    np.testing.assert_allclose(result.sensitivity, np.sqrt(np.sum(np.square(moves), axis=0)), rtol=1e-3)
+    assert result.sensitivity[1] > 10 > result.sensitivity[0]  # the hub inertia, not E

@@ -495,7 +495,7 @@ def test_checkpoint_round_trips_an_infinite_best_value(tmp_path):
     raw = {"log_k": jnp.zeros(()), "tau_z": jnp.ones(())}
     best = {"log_k": jnp.full((), 0.25), "tau_z": jnp.full((), 0.5)}
     opt_state = (jnp.arange(3.0),)
-    state = {"raw": raw, "opt_state": opt_state, "best_raw": best, "best_val": float("inf"), "step": 3, "history": []}
+    state = {"raw": raw, "opt_state": opt_state, "best_raw": best, "best_val": float("inf"), "step": 3, "history": [], "fingerprint": "f" * 16}
     _save_checkpoint(str(tmp_path / CHECKPOINT), state)
     loaded = _load_checkpoint(str(tmp_path / CHECKPOINT), (raw, opt_state, raw))
     assert loaded["best_val"] == float("inf") and loaded["step"] == 3

@@ -18,8 +18,9 @@ fields) is refused, naming them.
 Damping: with the calibrated model's frequencies ``w_i``, Rayleigh damping gives mode ``i``
 the ratio ``alpha / (2 w_i) + beta w_i / 2`` exactly (the modes of ``M`` and ``K`` diagonalise
 ``alpha M + beta K``). Two or more measured ratios fit ``alpha, beta >= 0`` by non-negative
-least squares; a single ratio sets ``damping_ratio`` (jaxflex's convention: that ratio in
-flexible modes 1 and 2 of the 2-mode model).
+least squares; a single ratio (of mode 1) sets ``damping_ratio`` (jaxflex's convention: that
+ratio in flexible modes 1 and 2 of the free hub's 2-mode model) to the value that gives mode 1
+of the calibrated model the measured ratio.
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ FITTABLE = (
     "payload_inertia_kg_m2",
 )
 DEFAULT_FIT = ("youngs_modulus_pa", "hub_inertia_kg_m2")
+"""Fitted by default, as many as there are frequencies (the hub's inertia only with the hub
+free: held still, it does not move)."""
 MAX_FACTOR = 1e3
 """A fitted field stays within this factor of its starting value (a bound of the search): a
 fit that reaches it is refused, since it points at a unit slip rather than at the arm."""
@@ -66,6 +69,9 @@ class Calibration(NamedTuple):
       after_hz: [n_f] the model's frequencies with the calibrated arm.
       measured_damping: [n_d] the measured damping ratios of modes 1..n_d (n_d may be 0).
       after_damping: [n_f] the calibrated model's damping ratio in each measured mode.
+      sensitivity: [len(fit)] each fitted field's change in %, to first order, for independent
+        errors of 1 % in the measured frequencies: large values (say above 10) mean the
+        frequencies determine that field poorly, however well the model then matches them.
       evaluations: model evaluations the least-squares search took.
     """
 
@@ -79,6 +85,7 @@ class Calibration(NamedTuple):
     after_hz: np.ndarray
     measured_damping: np.ndarray
     after_damping: np.ndarray
+    sensitivity: np.ndarray
     evaluations: int
 
     def as_dict(self) -> dict[str, Any]:
@@ -86,7 +93,10 @@ class Calibration(NamedTuple):
         return {
             "n_modes": self.n_modes,
             "hub": self.hub,
-            "fitted": {name: {"start": start, "calibrated": float(getattr(self.beam, name))} for name, start in zip(self.fit, self.start)},
+            "fitted": {
+                name: {"start": start, "calibrated": float(getattr(self.beam, name)), "percent_per_percent_frequency_error": float(s)}
+                for name, start, s in zip(self.fit, self.start, self.sensitivity)
+            },
             "measured_hz": self.measured_hz.tolist(),
             "model_before_hz": self.before_hz.tolist(),
             "model_after_hz": self.after_hz.tolist(),
@@ -100,16 +110,17 @@ class Calibration(NamedTuple):
 
 def _numbers(name: str, values: Any, high: float | None = None) -> np.ndarray:
     """``values`` (a number or a 1-D sequence) as float64, each finite, > 0 (and < ``high``)."""
-    if np.ndim(values) > 1:
-        raise ValueError(f"{name} must be a sequence of numbers; got shape {np.shape(values)}")
-    arr = checks.real_array(name, values).astype(np.float64).reshape(-1)
+    arr = checks.real_array(name, values).astype(np.float64)
+    if arr.ndim > 1:
+        raise ValueError(f"{name} must be a sequence of numbers; got shape {arr.shape}")
+    arr = arr.reshape(-1)
     if np.any(~np.isfinite(arr) | (arr <= 0) | (arr >= (np.inf if high is None else high))):
         accepted = "> 0" if high is None else f"in (0, {high:g})"
         raise ValueError(f"{name} must be finite numbers {accepted}; got {arr.tolist()}")
     return arr
 
 
-def _check(measured_hz: Any, params: beam.BeamParams, fit: Sequence[str], n_modes: int | None, hub: str, damping: Any) -> tuple[np.ndarray, tuple[str, ...], int, np.ndarray]:
+def _check(measured_hz: Any, params: beam.BeamParams, fit: Sequence[str] | None, n_modes: int | None, hub: str, damping: Any) -> tuple[np.ndarray, tuple[str, ...], int, np.ndarray]:
     beam.check_beam_params(params)
     measured = _numbers("measured_hz", measured_hz)
     if measured.size == 0:
@@ -118,14 +129,18 @@ def _check(measured_hz: Any, params: beam.BeamParams, fit: Sequence[str], n_mode
         raise ValueError(f"measured_hz must be strictly ascending, mode 1 first (Hz); got {measured.tolist()}")
     if hub not in beam.HUBS:
         raise ValueError(f"hub must be one of {beam.HUBS}; got {hub!r}")
-    if isinstance(fit, str) or not all(isinstance(name, str) for name in fit):
-        raise ValueError(f"fit must be a sequence of field names of BeamParams; got {fit!r}")
+    fit = default_fit(hub, measured.size) if fit is None else fit
+    if not isinstance(fit, (list, tuple)) or not all(isinstance(name, str) for name in fit):
+        raise ValueError(f"fit must be a list or tuple of field names of BeamParams; got {fit!r}")
     fit = tuple(fit)
     unknown = [name for name in fit if name not in FITTABLE]
     if unknown or not fit or len(set(fit)) != len(fit):
         raise ValueError(f"fit must name distinct fields among {', '.join(FITTABLE)}; got {list(fit)}")
     if len(fit) > measured.size:
-        raise ValueError(f"fit names {len(fit)} fields but {measured.size} frequenc{'y was' if measured.size == 1 else 'ies were'} measured: fit at most {measured.size}")
+        raise ValueError(f"fit names {len(fit)} fields but {_count(measured.size)} measured: fit at most {measured.size}")
+    arrays = [name for name in fit if np.ndim(getattr(params, name)) != 0]
+    if arrays:
+        raise ValueError(f"{', '.join(arrays)} must be a number in the arm to fit it; got an array")
     zero = [name for name in fit if float(getattr(params, name)) <= 0]
     if zero:
         raise ValueError(f"{', '.join(zero)} start(s) at 0: give a positive starting value in the arm ([beam]) to fit it")
@@ -134,8 +149,17 @@ def _check(measured_hz: Any, params: beam.BeamParams, fit: Sequence[str], n_mode
         raise ValueError(f"n_modes must be >= the number of measured frequencies ({measured.size}); got {n_modes}")
     ratios = np.zeros(0) if damping is None else _numbers("damping", damping, 1.0)
     if ratios.size > measured.size:
-        raise ValueError(f"damping holds {ratios.size} ratios but {measured.size} frequencies were measured: give at most one ratio per measured mode, mode 1 first")
+        raise ValueError(f"damping holds {ratios.size} ratios but {_count(measured.size)} measured: give at most one ratio per measured mode, mode 1 first")
     return measured, fit, n_modes, ratios
+
+
+def default_fit(hub: str, n_freqs: int) -> tuple[str, ...]:
+    """The first ``n_freqs`` of ``DEFAULT_FIT`` that act on the frequencies with this hub."""
+    return tuple(name for name in DEFAULT_FIT if hub != "clamped" or name != "hub_inertia_kg_m2")[: max(n_freqs, 1)]
+
+
+def _count(n: int) -> str:
+    return f"{n} frequenc{'y was' if n == 1 else 'ies were'}"
 
 
 def _model(params: beam.BeamParams, fit: tuple[str, ...], n_modes: int, hub: str, n_f: int):
@@ -152,7 +176,7 @@ def _model(params: beam.BeamParams, fit: tuple[str, ...], n_modes: int, hub: str
 def calibrate(
     measured_hz: Any,
     params: beam.BeamParams | None = None,
-    fit: Sequence[str] = DEFAULT_FIT,
+    fit: Sequence[str] | None = None,
     n_modes: int | None = None,
     hub: str = "free",
     damping: Any = None,
@@ -163,7 +187,8 @@ def calibrate(
       measured_hz: [n_f] measured natural frequencies (Hz) of flexible modes 1..n_f, ascending.
       params: the arm as known before the fit (geometry, material; default the paper's): the
         starting point, and the value of every field not fitted.
-      fit: fields to fit, at most n_f, each starting from a positive value (``FITTABLE``).
+      fit: fields to fit, at most n_f, each starting from a positive value (``FITTABLE``);
+        default :func:`default_fit`.
       n_modes: assumed modes of the model (default ``max(2, n_f)``; at least n_f). Simulate
         the calibrated arm with the same number.
       hub: the condition the frequencies were measured in: ``"free"`` (motor unpowered) or
@@ -181,7 +206,12 @@ def calibrate(
         log_freqs, jacobian = _model(params, fit, n_modes, hub, measured.size)
         target = np.log(measured)
         z0 = np.zeros(len(fit))
-        sv = np.linalg.svd(np.asarray(jacobian(z0)), compute_uv=False)
+        jac0 = np.asarray(jacobian(z0))
+        scale = np.max(np.abs(jac0))
+        inert = [name for name, column in zip(fit, jac0.T) if np.max(np.abs(column)) <= RANK_RTOL * scale]
+        if inert:
+            raise ValueError(f"{', '.join(inert)} does not change the model's frequencies with the hub {hub}: leave it out of fit")
+        sv = np.linalg.svd(jac0, compute_uv=False)
         if sv[-1] <= RANK_RTOL * sv[0]:
             raise ValueError(
                 f"the measured frequencies do not tell {', '.join(fit)} apart (with the hub {hub}, the model's frequencies "
@@ -202,21 +232,30 @@ def calibrate(
         at_bound = [name for name, z in zip(fit, result.x) if abs(z) >= bound * (1 - 1e-9)]
         if at_bound:
             raise ValueError(
-                f"the fit took {', '.join(at_bound)} to {MAX_FACTOR:g} times its starting value: check the units of the "
-                f"measured frequencies (Hz) and of the arm's constants, and whether the hub was {hub}"
+                f"the fit took {', '.join(at_bound)} to {MAX_FACTOR:g} times (or 1/{MAX_FACTOR:g} of) its starting value: check the "
+                f"units of the measured frequencies (Hz) and of the arm's constants, and whether the hub was {hub}"
             )
+        if not result.success:
+            raise ValueError(f"the fit did not converge ({result.message}); start from an arm closer to the measured one, or fit fewer fields")
+        # d log(field) / d log(f_j) at the solution; a 1 % error in every frequency,
+        # independent, moves each field by the root sum of squares of its row (in %)
+        sensitivity = np.sqrt(np.sum(np.linalg.pinv(np.asarray(jacobian(result.x))) ** 2, axis=1))
         arm = params._replace(**{name: float(s * np.exp(z)) for name, s, z in zip(fit, start, result.x)})
         before = np.asarray(beam.natural_frequencies_hz(params, n_modes, hub), np.float64)[: measured.size]
         after = np.asarray(beam.natural_frequencies_hz(arm, n_modes, hub), np.float64)[: measured.size]
         arm, model_damping = _fit_damping(arm, after, ratios, n_modes, hub)
-    return Calibration(arm, n_modes, hub, fit, start, measured, before, after, ratios, model_damping, int(result.nfev))
+    return Calibration(arm, n_modes, hub, fit, start, measured, before, after, ratios, model_damping, sensitivity, int(result.nfev))
 
 
 def _fit_damping(arm: beam.BeamParams, model_hz: np.ndarray, ratios: np.ndarray, n_modes: int, hub: str) -> tuple[beam.BeamParams, np.ndarray]:
     """The arm with the measured damping, and the damping ratio of its model in each measured mode."""
     omega = 2.0 * np.pi * model_hz
     if ratios.size == 1:
-        arm = arm._replace(damping_ratio=float(ratios[0]), rayleigh_alpha=None, rayleigh_beta=None)
+        # damping_ratio is that of the free hub's 2-mode model; the ratio of the mode measured
+        # is proportional to it
+        unit = arm._replace(damping_ratio=1.0, rayleigh_alpha=None, rayleigh_beta=None)
+        alpha, beta = (float(c) for c in beam.rayleigh_coefficients(unit))
+        arm = unit._replace(damping_ratio=float(ratios[0] / (alpha / (2.0 * omega[0]) + beta * omega[0] / 2.0)))
     elif ratios.size >= 2:
         basis = np.stack([0.5 / omega[: ratios.size], 0.5 * omega[: ratios.size]], axis=1)
         scale = np.linalg.norm(basis, axis=0)
