@@ -34,16 +34,8 @@ import scipy.optimize
 
 from jaxflex import beam, checks
 
-FITTABLE = (
-    "length_m",
-    "width_m",
-    "thickness_m",
-    "youngs_modulus_pa",
-    "density_kg_m3",
-    "hub_inertia_kg_m2",
-    "payload_mass_kg",
-    "payload_inertia_kg_m2",
-)
+FITTABLE = tuple(name for name in beam.BeamParams._fields if name not in ("damping_ratio", "rayleigh_alpha", "rayleigh_beta"))
+"""The arm's physical constants: every field of ``BeamParams`` but the damping."""
 DEFAULT_FIT = ("youngs_modulus_pa", "hub_inertia_kg_m2")
 """Fitted by default, as many as there are frequencies (the hub's inertia only with the hub
 free: held still, it does not move)."""
