@@ -311,6 +311,13 @@ def modal_matrices(params: BeamParams, n_modes: int = 2) -> ModalMatrices:
 HUBS = ("free", "clamped")
 
 
+def check_hub(hub: str) -> str:
+    """``hub`` must name one of ``HUBS``."""
+    if hub not in HUBS:
+        raise ValueError(f"hub must be one of {HUBS}; got {hub!r}")
+    return hub
+
+
 def natural_frequencies_hz(params: BeamParams, n_modes: int = 2, hub: str = "free") -> jax.Array:
     """[n] undamped flexible natural frequencies (Hz) of the n-mode model, ascending.
 
@@ -324,8 +331,7 @@ def natural_frequencies_hz(params: BeamParams, n_modes: int = 2, hub: str = "fre
         cantilever's own).
     """
     n_modes = check_n_modes(n_modes)
-    if hub not in HUBS:
-        raise ValueError(f"hub must be one of {HUBS}; got {hub!r}")
+    check_hub(hub)
     check_beam_params(params)
     M, K, *_ = _structural(params, n_modes)
     if hub == "clamped":

@@ -119,8 +119,7 @@ def _check(measured_hz: Any, params: beam.BeamParams, fit: Sequence[str] | None,
         raise ValueError("measured_hz must hold at least one frequency (Hz)")
     if np.any(np.diff(measured) <= 0):
         raise ValueError(f"measured_hz must be strictly ascending, mode 1 first (Hz); got {measured.tolist()}")
-    if hub not in beam.HUBS:
-        raise ValueError(f"hub must be one of {beam.HUBS}; got {hub!r}")
+    beam.check_hub(hub)
     fit = default_fit(hub, measured.size) if fit is None else fit
     if not isinstance(fit, (list, tuple)) or not all(isinstance(name, str) for name in fit):
         raise ValueError(f"fit must be a list or tuple of field names of BeamParams; got {fit!r}")
@@ -233,13 +232,12 @@ def calibrate(
         # independent, moves each field by the root sum of squares of its row (in %)
         sensitivity = np.sqrt(np.sum(np.linalg.pinv(np.asarray(jacobian(result.x))) ** 2, axis=1))
         arm = params._replace(**{name: float(s * np.exp(z)) for name, s, z in zip(fit, start, result.x)})
-        before = np.asarray(beam.natural_frequencies_hz(params, n_modes, hub), np.float64)[: measured.size]
-        after = np.asarray(beam.natural_frequencies_hz(arm, n_modes, hub), np.float64)[: measured.size]
-        arm, model_damping = _fit_damping(arm, after, ratios, n_modes, hub)
+        before, after = (np.exp(np.asarray(log_freqs(z), np.float64)) for z in (z0, result.x))
+        arm, model_damping = _fit_damping(arm, after, ratios)
     return Calibration(arm, n_modes, hub, fit, start, measured, before, after, ratios, model_damping, sensitivity, int(result.nfev))
 
 
-def _fit_damping(arm: beam.BeamParams, model_hz: np.ndarray, ratios: np.ndarray, n_modes: int, hub: str) -> tuple[beam.BeamParams, np.ndarray]:
+def _fit_damping(arm: beam.BeamParams, model_hz: np.ndarray, ratios: np.ndarray) -> tuple[beam.BeamParams, np.ndarray]:
     """The arm with the measured damping, and the damping ratio of its model in each measured mode."""
     omega = 2.0 * np.pi * model_hz
     if ratios.size == 1:
