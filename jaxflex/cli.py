@@ -6,7 +6,7 @@ import argparse
 import os
 import sys
 import time
-from typing import Sequence
+from typing import Any, Sequence
 
 from jaxflex import checks, fileio
 from jaxflex.beam import HUBS
@@ -87,9 +87,14 @@ def _parser() -> argparse.ArgumentParser:
     stab.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the arm (default the paper's), its n_modes and [scenarios] dt the defaults of --modes and --dt; a top-level key neither tune nor montecarlo accepts is refused, the other keys are not read")
     stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
 
-    cal = sub.add_parser("calibrate", help="fit the arm's constants to measured natural frequencies (and damping ratios); writes a config for the other commands")
-    cal.add_argument("--freqs", type=float, nargs="+", required=True, metavar="HZ", help="measured natural frequencies of flexible modes 1, 2, ... (Hz, ascending)")
-    cal.add_argument("--damping", type=float, nargs="+", default=None, metavar="RATIO", help="measured damping ratios of modes 1, 2, ... (each in (0, 1); at most one per frequency)")
+    cal = sub.add_parser("calibrate", help="fit the arm's constants to measured natural frequencies (and damping ratios), or to a free-vibration record; writes a config for the other commands")
+    measured = cal.add_mutually_exclusive_group(required=True)
+    measured.add_argument("--freqs", type=float, nargs="+", metavar="HZ", help="measured natural frequencies of flexible modes 1, 2, ... (Hz, ascending)")
+    measured.add_argument("--record", metavar="CSV", help="a free-vibration record instead: time (s) in the first column, one channel per further column (any units), an optional header line; its modes' frequencies and damping ratios are found and fitted")
+    cal.add_argument("--record-modes", type=_positive_int, default=None, metavar="N", help="with --record: the number of flexible modes to find in it (default 2)")
+    cal.add_argument("--start", type=float, default=None, metavar="S", help="with --record: the time (s) the free decay starts, after the excitation has ended (default: the record's first sample)")
+    cal.add_argument("--end", type=float, default=None, metavar="S", help="with --record: the time (s) to use the record up to (default: its last sample)")
+    cal.add_argument("--damping", type=float, nargs="+", default=None, metavar="RATIO", help="measured damping ratios of modes 1, 2, ... (each in (0, 1); at most one per frequency); with --record they come from the record")
     cal.add_argument("--fit", nargs="+", default=None, metavar="FIELD", help="[beam] fields to fit, at most one per frequency (default: youngs_modulus_pa and, with the hub free and two or more frequencies, hub_inertia_kg_m2)")
     cal.add_argument("--hub", choices=HUBS, default="free", help="how the arm was held when measured: free (motor unpowered; default) or clamped (hub held still)")
     cal.add_argument("--modes", type=_positive_int, default=None, help="assumed modes of the model (default: the config's n_modes, else max(2, number of frequencies))")
@@ -427,12 +432,18 @@ def _arm_config(path: str | None):
 
 
 def _calibrate(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from jaxflex import plotting
     from tuning.calibrate import calibrate, to_toml
 
     _, arm, config_modes = _arm_config(args.config)
+    if args.record is None and (args.start, args.end, args.record_modes) != (None, None, None):
+        raise ValueError("--start, --end and --record-modes apply to --record only")
+    modes, record = _identify(args) if args.record is not None else (None, None)
+    freqs, damping = (args.freqs, args.damping) if modes is None else (modes.frequencies_hz, modes.damping)
     try:
-        result = calibrate(args.freqs, arm, args.fit, args.modes if args.modes is not None else config_modes, args.hub, args.damping)
+        result = calibrate(freqs, arm, args.fit, args.modes if args.modes is not None else config_modes, args.hub, damping)
     except ValueError as err:
         # A message that starts with the core's name of a parameter names its option here.
         first, _, rest = str(err).partition(" ")
@@ -456,14 +467,47 @@ def _calibrate(args: argparse.Namespace) -> int:
     moved = [name for name, start in zip(result.fit, result.start) if not 0.1 <= float(getattr(result.beam, name)) / start <= 10]
     if moved:
         print(f"note: {', '.join(moved)} moved by more than 10x from the starting arm: check the units (Hz, not rad/s; SI constants in [beam]) and --hub", file=sys.stderr)
-    owned = ("calibrated.toml", "calibration.json", "calibration.png")
+    owned = ("calibrated.toml", "calibration.json", "calibration.png", "identification.png")
     with fileio.replace_outputs(args.out, owned, last="calibration.json") as stage:
         fileio.write_text(os.path.join(stage, "calibrated.toml"), to_toml(result))
         title = f"Calibration, hub {result.hub}, {result.n_modes} modes: fitted {', '.join(result.fit)}"
         plotting.save(plotting.calibration(result.measured_hz, result.before_hz, result.after_hz, title), os.path.join(stage, "calibration.png"))
-        fileio.write_json(os.path.join(stage, "calibration.json"), result.as_dict())
-    print(f"wrote {os.path.join(args.out, 'calibrated.toml')} (pass it as --config to tune, montecarlo or stability), calibration.json and calibration.png")
+        summary = result.as_dict()
+        if modes is not None:
+            summary["identified"] = {"record": os.path.abspath(args.record), **modes.as_dict()}
+            t, y, names = record
+            t_model = modes.start_s + modes.dt * np.arange(modes.reconstruction.shape[0])
+            title = f"{os.path.basename(args.record)}: " + ", ".join(f"{f:.4g} Hz (damping {100 * z:.3g} %)" for f, z in zip(modes.frequencies_hz, modes.damping))
+            plotting.save(plotting.identification(t, y, t_model, modes.reconstruction, names, title), os.path.join(stage, "identification.png"))
+        fileio.write_json(os.path.join(stage, "calibration.json"), summary)
+    shown = "calibration.json, calibration.png" + (" and identification.png" if modes is not None else "")
+    print(f"wrote {os.path.join(args.out, 'calibrated.toml')} (pass it as --config to tune, montecarlo or stability), {shown}")
     return 0
+
+
+def _identify(args: argparse.Namespace) -> tuple[Any, tuple[Any, Any, list[str]]]:
+    """The modes of ``--record`` (``tuning.identify.Modes``), printed, and the record
+    (``read_record``'s times, channels and names)."""
+    from tuning.identify import identify_modes, read_record
+
+    if args.damping is not None:
+        raise ValueError("--damping: with --record the damping ratios come from the record; give one or the other")
+    t, y, names = read_record(args.record)
+    n_modes = 2 if args.record_modes is None else args.record_modes
+    try:
+        modes = identify_modes(t, y, n_modes, start_s=args.start, end_s=args.end)
+    except ValueError as err:
+        first, _, rest = str(err).partition(" ")
+        options = {"n_modes": "--record-modes", "start_s": "--start", "end_s": "--end", "t": f"the time column of {args.record}", "y": f"the channels of {args.record}"}
+        raise ValueError(f"{options[first]} {rest}" if first in options else f"--record {args.record}: {err}") from None
+    print(f"{args.record}: {len(names)} channel(s), {modes.start_s:g}-{modes.end_s:g} s at dt = {modes.dt:g} s; "
+          f"the model of {2 * n_modes + 2} poles leaves {100 * modes.residual:.3g} % of it (RMS)")
+    for i, (f, z) in enumerate(zip(modes.frequencies_hz, modes.damping)):
+        print(f"  mode {i + 1}: {f:.6g} Hz, damping ratio {z:.4g}")
+    if modes.residual > 0.1:
+        print(f"note: {n_modes} decaying modes leave {100 * modes.residual:.3g} % of the record unexplained: check that it starts after the "
+              "excitation has ended (--start), and --record-modes; see identification.png", file=sys.stderr)
+    return modes, (t, y, names)
 
 
 def _stability(args: argparse.Namespace) -> int:

@@ -318,3 +318,20 @@ def calibration(measured_hz: np.ndarray, before_hz: np.ndarray, after_hz: np.nda
     fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model: np.ndarray, names: Sequence[str], title: str) -> plt.Figure:
+    """A free-vibration record (every sample) and the model of its modes over the window
+    identified, one panel per channel."""
+    fig, axes = plt.subplots(len(names), 1, figsize=(9.0, 1.2 + 2.0 * len(names)), sharex=True, squeeze=False)
+    for ax, name, y, fit in zip(axes[:, 0], names, record.T, model.T):
+        ax.plot(t, y, color="0.6", lw=1.0, label="record")
+        ax.plot(t_model, fit, color="C0", lw=1.0, ls="--", label="modes identified")
+        ax.axvline(t_model[0], color="k", lw=0.8, ls=":")
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8, loc="upper right")
+    axes[-1, 0].set_xlabel("Time (s)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig

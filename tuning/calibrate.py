@@ -1,5 +1,6 @@
 """Fit the arm's constants to what was measured on it: natural frequencies (a tap test) and,
-optionally, modal damping ratios (a ring-down).
+optionally, modal damping ratios (a ring-down); both can come from a free-vibration record
+through :mod:`tuning.identify`.
 
 Frequencies: nonlinear least squares (``scipy.optimize.least_squares``, trust region) over the
 logarithms of the fitted fields of :class:`~jaxflex.beam.BeamParams`, on the residuals

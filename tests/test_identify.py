@@ -1,0 +1,202 @@
+"""tuning.identify and `jaxflex calibrate --record`: the arm's modes from a free-vibration record.
+
+Oracles: scipy's eigenvalues of the continuous plant (the free decay is sampled from
+``expm(A t)``, not from jaxflex's rollout), damped sinusoids written in closed form, and the
+arm that made the record (recovered by the calibration).
+"""
+
+import json
+import os
+import re
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from jaxflex import cli
+from jaxflex.beam import BeamParams
+from jaxflex.plant import make_plant
+from tuning.identify import identify_modes, read_record
+
+PAPER = BeamParams()
+DT = 1e-3
+
+
+def _modes_of(arm: BeamParams, n_modes: int) -> tuple[np.ndarray, np.ndarray]:
+    """The flexible modes' undamped frequencies (Hz) and damping ratios from the eigenvalues."""
+    lam = scipy.linalg.eigvals(np.asarray(make_plant(arm, n_modes).A))
+    lam = lam[lam.imag > 1e-9]
+    lam = lam[np.argsort(np.abs(lam))]
+    return np.abs(lam) / (2 * np.pi), -lam.real / np.abs(lam)
+
+
+def _free_decay(arm: BeamParams, n_modes: int, steps: int, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``t`` and ``[hub angle, tip deflection]`` from ``x0``, sampled exactly (``expm``)."""
+    plant = make_plant(arm, n_modes)
+    step = scipy.linalg.expm(np.asarray(plant.A) * DT)
+    xs = [np.asarray(x0, np.float64)]
+    for _ in range(steps - 1):
+        xs.append(step @ xs[-1])
+    outputs = np.stack([np.asarray(plant.C)[0], np.asarray(plant.Cz)[1]])
+    return DT * np.arange(steps), np.stack(xs) @ outputs.T
+
+
+def _x0(n_modes: int) -> np.ndarray:
+    """A hub kick and a bent link: every mode moves, and the hub drifts (the rigid mode)."""
+    x0 = np.zeros(2 * (n_modes + 1))
+    x0[1:n_modes + 1] = 0.01 / np.arange(1, n_modes + 1)
+    x0[n_modes + 1] = 0.2
+    return x0
+
+
+@pytest.mark.parametrize("channels", [[0], [1], [0, 1]], ids=["hub angle", "tip", "both"])
+def test_modes_of_a_free_decay_are_the_plants_eigenvalues(channels):
+    t, y = _free_decay(PAPER, 2, 3000, _x0(2))
+    modes = identify_modes(t, y[:, channels], 2)
+    freqs, damping = _modes_of(PAPER, 2)
+    np.testing.assert_allclose(modes.frequencies_hz, freqs, rtol=1e-10)
+    np.testing.assert_allclose(modes.damping, damping, rtol=1e-9)
+    assert modes.residual < 1e-9 and modes.dt == pytest.approx(DT, rel=1e-12)
+    np.testing.assert_allclose(modes.reconstruction, y[:, channels], atol=1e-9 * np.max(np.abs(y)))
+
+
+def test_closed_form_sinusoids_offset_and_ramp():
+    t = np.arange(2500) * 2e-3 + 7.0  # the record's clock need not start at 0
+    freqs, damping = np.array([3.0, 11.0, 47.0]), np.array([0.05, 0.002, 0.2])
+    wn = 2 * np.pi * freqs
+    wd = wn * np.sqrt(1 - damping**2)
+    tt = t - t[0]
+    y = 0.3 + 0.01 * tt + sum(a * np.exp(-z * w * tt) * np.cos(v * tt + p) for a, z, w, v, p in zip([1.0, 0.2, 0.5], damping, wn, wd, [0.3, 1.0, -2.0]))
+    modes = identify_modes(t, y, 3)
+    np.testing.assert_allclose(modes.frequencies_hz, freqs, rtol=1e-10)
+    np.testing.assert_allclose(modes.damping, damping, rtol=1e-9)
+    # each mode's RMS over the window in the channel, against the closed form's
+    rms = [np.sqrt(np.mean((a * np.exp(-z * w * tt) * np.cos(v * tt + p)) ** 2)) for a, z, w, v, p in zip([1.0, 0.2, 0.5], damping, wn, wd, [0.3, 1.0, -2.0])]
+    np.testing.assert_allclose(modes.rms[:, 0], rms, rtol=1e-8)
+    assert modes.start_s == t[0] and modes.end_s == t[-1]
+
+
+def test_the_strongest_modes_are_kept_and_sorted_by_frequency():
+    tt = np.arange(3000) * DT
+    weak, strong_low, strong_high = (a * np.exp(-0.5 * tt) * np.sin(2 * np.pi * f * tt) for a, f in ((1e-3, 5.0), (1.0, 20.0), (0.5, 90.0)))
+    modes = identify_modes(tt, weak + strong_low + strong_high, 2)
+    np.testing.assert_allclose(modes.frequencies_hz, np.hypot([20.0, 90.0], 0.5 / (2 * np.pi)), rtol=1e-10)
+
+
+def test_channels_are_weighed_alike_whatever_their_units():
+    # Mode 2 is only in the second channel, in units 1e6 times smaller: unscaled, the first
+    # channel's SVD directions would leave it out.
+    tt = np.arange(2000) * DT
+    first = 1e3 * np.exp(-1.0 * tt) * np.sin(2 * np.pi * 10 * tt)
+    second = 1e-3 * np.exp(-2.0 * tt) * np.sin(2 * np.pi * 33 * tt)
+    noise = np.random.default_rng(0).standard_normal((2000, 2)) * [1e-3 * 1e3, 0.0]
+    modes = identify_modes(tt, np.stack([first, second], 1) + noise, 2)
+    np.testing.assert_allclose(modes.frequencies_hz, np.hypot([10.0, 33.0], np.array([1.0, 2.0]) / (2 * np.pi)), rtol=1e-5)
+
+
+def test_noise_moves_the_modes_little():
+    # 1 % sensor noise on the tip: frequencies to 1e-4 and damping ratios to 5 % (measured
+    # 1e-5 and 4e-4 with this seed); the residual is the noise.
+    t, y = _free_decay(PAPER, 2, 3000, _x0(2))
+    tip = y[:, 1] + 0.01 * np.std(y[:, 1]) * np.random.default_rng(0).standard_normal(3000)
+    modes = identify_modes(t, tip, 2)
+    freqs, damping = _modes_of(PAPER, 2)
+    np.testing.assert_allclose(modes.frequencies_hz, freqs, rtol=1e-4)
+    np.testing.assert_allclose(modes.damping, damping, rtol=5e-2)
+    assert 0.005 < modes.residual < 0.02
+
+
+def test_window_leaves_out_the_excitation():
+    # a forced part (a square wave) before the free decay: with the window, the decay alone
+    tt = np.arange(3000) * DT
+    decay = np.exp(-0.8 * (tt - 0.5)) * np.sin(2 * np.pi * 12 * (tt - 0.5))
+    y = np.where(tt < 0.5, np.sign(np.sin(2 * np.pi * 4 * tt)), decay)
+    modes = identify_modes(tt, y, 1, start_s=0.5)
+    np.testing.assert_allclose(modes.frequencies_hz, [np.hypot(12.0, 0.8 / (2 * np.pi))], rtol=1e-10)
+    assert modes.start_s == pytest.approx(0.5) and modes.reconstruction.shape == (2500, 1)
+    assert identify_modes(tt, y, 1).residual > 0.1  # the whole record is no free decay
+
+
+@pytest.mark.parametrize(
+    "t, y, kwargs, match",
+    [
+        (np.arange(100) * DT, np.zeros(100), dict(n_modes=0), "n_modes must be an integer in"),
+        (np.arange(100) * DT, np.ones(99), {}, "same N"),
+        (np.arange(100) * DT, np.r_[np.nan, np.ones(99)], {}, "must be finite"),
+        (np.arange(20) * DT, np.ones(20), {}, "holds 20 samples; 2 modes need at least 21"),
+        (np.arange(100) * DT, np.ones(100), dict(start_s=1.0), "holds 0 samples"),
+        (np.arange(100) * DT, np.ones(100), dict(start_s=float("nan")), "start_s must be a finite number"),
+        (np.r_[np.arange(50), np.arange(50, 100) * 1.5] * DT, np.ones(100), {}, "uniformly sampled"),
+        (np.arange(100)[::-1] * DT, np.ones(100), {}, "t must be strictly ascending"),
+        (np.arange(100) * DT, np.c_[np.ones(100), np.zeros(100)], {}, r"channel\(s\) \[2\] of y are 0"),
+        (np.arange(300) * DT, np.exp(-np.arange(300) * DT), {}, "found 0 oscillating mode"),
+        (np.arange(300) * DT, np.exp(np.arange(300) * DT) * np.sin(2 * np.pi * 20 * np.arange(300) * DT), dict(n_modes=1), "at 20 Hz do not decay"),
+        ("abc", np.ones(3), {}, "t must be a real number or an array"),
+    ],
+)
+def test_refusals(t, y, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        identify_modes(t, y, **kwargs)
+
+
+def test_read_record(tmp_path):
+    path = tmp_path / "r.csv"
+    path.write_text("# tap test\ntime_s, tip_m ,strain\n0.0,1,2  # first\n\n0.001,3,4\n")
+    t, y, names = read_record(path)
+    np.testing.assert_array_equal(t, [0.0, 0.001])
+    np.testing.assert_array_equal(y, [[1, 2], [3, 4]])
+    assert names == ["tip_m", "strain"]
+    path.write_text("0.0,1\n0.001,3\n")
+    assert read_record(path)[2] == ["channel 1"]
+    for text, match in [
+        ("t,a\n0,1\n1,2,3\n", "line 3 of .*: 3 columns, not 2"),
+        ("t,a\n0,x\n", "line 2 of .*could not convert"),
+        ("0\n1\n", "a time column .* and at least one channel"),
+        ("# nothing\n", "holds no rows"),
+    ]:
+        path.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            read_record(path, "--record")
+    with pytest.raises(ValueError, match="--record: cannot read"):
+        read_record(tmp_path / "missing.csv")
+
+
+def _write_record(path, t, y, header="time_s,hub_angle_rad,tip_m") -> None:
+    np.savetxt(path, np.column_stack([t, y]), delimiter=",", header=header, comments="")
+
+
+def test_cli_calibrates_the_arm_that_made_the_record(tmp_path, capsys):
+    true = PAPER._replace(youngs_modulus_pa=71e9 * 1.1, hub_inertia_kg_m2=5.8598e-4 * 0.9, rayleigh_alpha=0.3, rayleigh_beta=2e-5)
+    t, y = _free_decay(true, 2, 3000, _x0(2))
+    _write_record(tmp_path / "tap.csv", t, y)
+    out = tmp_path / "cal"
+    assert cli.main(["calibrate", "--record", str(tmp_path / "tap.csv"), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "2 channel(s), 0-2.999 s at dt = 0.001 s" in printed
+    assert sorted(os.listdir(out)) == ["calibrated.toml", "calibration.json", "calibration.png", "identification.png"]
+    summary = json.loads((out / "calibration.json").read_text())
+    for name in ("youngs_modulus_pa", "hub_inertia_kg_m2", "rayleigh_alpha", "rayleigh_beta"):
+        np.testing.assert_allclose(summary["beam"][name], getattr(true, name), rtol=1e-8, err_msg=name)
+    np.testing.assert_allclose(summary["identified"]["frequencies_hz"], _modes_of(true, 2)[0], rtol=1e-10)
+    assert summary["identified"]["record"] == str(tmp_path / "tap.csv")
+    # a later run from frequencies leaves no identification figure of this one behind
+    assert cli.main(["calibrate", "--freqs", "13", "36", "--out", str(out)]) == 0
+    assert "identification.png" not in os.listdir(out)
+
+
+def test_cli_record_errors_name_options(tmp_path, capsys):
+    tt = np.arange(200) * DT
+    _write_record(tmp_path / "r.csv", tt, np.exp(-tt) * np.sin(2 * np.pi * 30 * tt), "t,a")
+    record = str(tmp_path / "r.csv")
+    for argv, message in [
+        (["--record", record, "--damping", "0.01"], "error: --damping: with --record the damping ratios come from the record"),
+        (["--freqs", "13", "--start", "0.1"], "error: --start, --end and --record-modes apply to --record only"),
+        (["--record", record, "--start", "0.19"], "error: --record .*r.csv: the window \\[0.19, 0.199\\] s holds 10 samples"),
+        (["--record", record, "--record-modes", "3"], "error: --record .*: found 1 oscillating mode"),
+        (["--record", str(tmp_path / "none.csv")], "error: --record: cannot read"),
+    ]:
+        assert cli.main(["calibrate", *argv, "--out", str(tmp_path / "out")]) == 2
+        assert re.search(message, capsys.readouterr().err), argv
+    assert not os.path.exists(tmp_path / "out")
+    with pytest.raises(SystemExit):  # argparse: one or the other
+        cli.main(["calibrate", "--freqs", "13", "--record", record])
