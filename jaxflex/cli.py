@@ -471,7 +471,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     with fileio.replace_outputs(args.out, owned, last="calibration.json") as stage:
         fileio.write_text(os.path.join(stage, "calibrated.toml"), to_toml(result))
         title = f"Calibration, hub {result.hub}, {result.n_modes} modes: fitted {', '.join(result.fit)}"
-        plotting.save(plotting.calibration(result.measured_hz, result.before_hz, result.after_hz, title), os.path.join(stage, "calibration.png"))
+        plotting.save(plotting.calibration(result.measured_hz, result.before_hz, result.after_hz, title, result.measured_damping, result.after_damping), os.path.join(stage, "calibration.png"))
         summary = result.as_dict()
         if modes is not None:
             summary["identified"] = {"record": os.path.abspath(args.record), **modes.as_dict()}

@@ -294,11 +294,22 @@ def stability_chart(
     return fig
 
 
-def calibration(measured_hz: np.ndarray, before_hz: np.ndarray, after_hz: np.ndarray, title: str) -> plt.Figure:
+def calibration(
+    measured_hz: np.ndarray,
+    before_hz: np.ndarray,
+    after_hz: np.ndarray,
+    title: str,
+    measured_damping: np.ndarray | None = None,
+    model_damping: np.ndarray | None = None,
+) -> plt.Figure:
     """Measured natural frequencies against the model's before and after a calibration: the
-    frequencies per mode (log scale over a decade or more), and the model's error in percent of the measured."""
+    frequencies per mode (log scale over a decade or more), and the model's error in percent of the measured;
+    with ``measured_damping`` (modes 1..n_d), a third panel of the damping ratios, measured and
+    the calibrated model's (``model_damping``, every mode)."""
     modes = np.arange(1, len(measured_hz) + 1)
-    fig, (left, right) = plt.subplots(1, 2, figsize=(9.0, 3.6))
+    damped = measured_damping is not None and len(measured_damping) > 0
+    fig, axes = plt.subplots(1, 3 if damped else 2, figsize=(13.0 if damped else 9.0, 3.6))
+    left, right = axes[:2]
     left.plot(modes, measured_hz, "kx", ms=9, mew=2, label="measured")
     left.plot(modes, before_hz, "o", mfc="none", color="C1", label="model before")
     left.plot(modes, after_hz, "o", ms=4, color="C0", label="model calibrated")
@@ -310,7 +321,12 @@ def calibration(measured_hz: np.ndarray, before_hz: np.ndarray, after_hz: np.nda
         right.bar(modes + offset, 100.0 * (np.asarray(values) / measured_hz - 1.0), width, label=label, color=color)
     right.axhline(0.0, color="k", lw=0.8)
     right.set_ylabel("Error (% of measured)")
-    for ax in (left, right):
+    if damped:
+        axes[2].plot(np.arange(1, len(measured_damping) + 1), 100.0 * np.asarray(measured_damping), "kx", ms=9, mew=2, label="measured")
+        axes[2].plot(modes, 100.0 * np.asarray(model_damping), "o", ms=4, color="C0", label="model calibrated")
+        axes[2].set_ylabel("Damping ratio (%)")
+        axes[2].set_ylim(bottom=0.0)
+    for ax in axes:
         ax.set_xlabel("Mode")
         ax.set_xticks(modes)
         ax.grid(alpha=0.3, which="both")

@@ -200,3 +200,22 @@ def test_cli_record_errors_name_options(tmp_path, capsys):
     assert not os.path.exists(tmp_path / "out")
     with pytest.raises(SystemExit):  # argparse: one or the other
         cli.main(["calibrate", "--freqs", "13", "--record", record])
+
+
+def test_figures_draw_the_damping_and_the_record(tmp_path):
+    from jaxflex import plotting
+
+    fig = plotting.calibration(np.array([13.0, 36.0]), np.array([12.0, 35.0]), np.array([13.0, 36.0]), "t", np.array([0.012]), np.array([0.012, 0.02]))
+    damping_panel = fig.axes[2]
+    np.testing.assert_allclose(damping_panel.lines[0].get_ydata(), [1.2])
+    np.testing.assert_allclose(damping_panel.lines[1].get_ydata(), [1.2, 2.0])
+    plotting.plt.close(fig)
+    assert len(plotting.calibration(np.array([13.0]), np.array([12.0]), np.array([13.0]), "t").axes) == 2  # no ratios, no panel
+    t, y = _free_decay(PAPER, 2, 600, _x0(2))
+    modes = identify_modes(t, y, 2, start_s=0.1)
+    fig = plotting.identification(t, y, modes.start_s + modes.dt * np.arange(500), modes.reconstruction, ["hub", "tip"], "t")
+    assert [ax.get_ylabel() for ax in fig.axes] == ["hub", "tip"]
+    for ax, channel in zip(fig.axes, y.T):
+        np.testing.assert_array_equal(ax.lines[0].get_ydata(), channel)  # the whole record
+        np.testing.assert_allclose(ax.lines[1].get_ydata(), channel[100:], atol=1e-9 * np.max(np.abs(channel)))  # the model, from --start
+    plotting.plt.close("all")
