@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import time
 from typing import Any, Sequence
@@ -432,8 +433,6 @@ def _arm_config(path: str | None):
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from jaxflex import plotting
     from tuning.calibrate import calibrate, to_toml
 
@@ -476,9 +475,8 @@ def _calibrate(args: argparse.Namespace) -> int:
         if modes is not None:
             summary["identified"] = {"record": os.path.abspath(args.record), **modes.as_dict()}
             t, y, names = record
-            t_model = modes.start_s + modes.dt * np.arange(modes.reconstruction.shape[0])
             title = f"{os.path.basename(args.record)}: " + ", ".join(f"{f:.4g} Hz (damping {100 * z:.3g} %)" for f, z in zip(modes.frequencies_hz, modes.damping))
-            plotting.save(plotting.identification(t, y, t_model, modes.reconstruction, names, title), os.path.join(stage, "identification.png"))
+            plotting.save(plotting.identification(t, y, modes.times, modes.reconstruction, names, title), os.path.join(stage, "identification.png"))
         fileio.write_json(os.path.join(stage, "calibration.json"), summary)
     shown = "calibration.json, calibration.png" + (" and identification.png" if modes is not None else "")
     print(f"wrote {os.path.join(args.out, 'calibrated.toml')} (pass it as --config to tune, montecarlo or stability), {shown}")
@@ -497,16 +495,19 @@ def _identify(args: argparse.Namespace) -> tuple[Any, tuple[Any, Any, list[str]]
     try:
         modes = identify_modes(t, y, n_modes, start_s=args.start, end_s=args.end)
     except ValueError as err:
-        first, _, rest = str(err).partition(" ")
-        options = {"n_modes": "--record-modes", "start_s": "--start", "end_s": "--end", "t": f"the time column of {args.record}", "y": f"the channels of {args.record}"}
-        raise ValueError(f"{options[first]} {rest}" if first in options else f"--record {args.record}: {err}") from None
-    print(f"{args.record}: {len(names)} channel(s), {modes.start_s:g}-{modes.end_s:g} s at dt = {modes.dt:g} s; "
-          f"the model of {2 * n_modes + 2} poles leaves {100 * modes.residual:.3g} % of it (RMS)")
+        # the core's names of the options, the options' names here
+        message = re.sub(r"\b(n_modes|start_s|end_s)\b", lambda m: {"n_modes": "--record-modes", "start_s": "--start", "end_s": "--end"}[m[1]], str(err))
+        raise ValueError(message if message.startswith("--") else f"--record {args.record}: {message}") from None
+    print(f"{args.record}: {len(names)} channel(s), {modes.end_s - modes.start_s:.6g} s from {modes.start_s:.10g} s at dt = {modes.dt:g} s; "
+          f"the model of {modes.order} poles leaves {100 * modes.residual:.3g} % of its modes' RMS")
     for i, (f, z) in enumerate(zip(modes.frequencies_hz, modes.damping)):
         print(f"  mode {i + 1}: {f:.6g} Hz, damping ratio {z:.4g}")
     if modes.residual > 0.1:
-        print(f"note: {n_modes} decaying modes leave {100 * modes.residual:.3g} % of the record unexplained: check that it starts after the "
-              "excitation has ended (--start), and --record-modes; see identification.png", file=sys.stderr)
+        print(f"note: the model leaves {100 * modes.residual:.3g} % of the record unexplained: check that the window starts after the "
+              "excitation has ended (--start); see identification.png", file=sys.stderr)
+    if modes.lag_span_s * modes.frequencies_hz[0] < 1:
+        print(f"note: the record is sampled so fast that the model's lags span {modes.lag_span_s:.3g} s, less than a period of mode 1: "
+              "its modes are poorly resolved; low-pass filter it and keep every k-th sample, at several samples per period of the highest mode", file=sys.stderr)
     return modes, (t, y, names)
 
 

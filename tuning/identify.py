@@ -11,17 +11,21 @@ free the rigid mode adds a constant and a ramp (a double pole at ``z = 1``).
 
 The poles are found by the shift invariance of the record's Hankel matrix (ESPRIT, the
 matrix pencil method): its columns, ``[y[t], y[t + 1], ..., y[t + L]]``, span the space of the
-vectors ``[1, z_k, ..., z_k^L]``; the SVD gives a basis ``U`` of the ``r`` strongest
+vectors ``[1, z_k, ..., z_k^L]``; an SVD gives a basis ``U`` of the ``r`` strongest
 directions, and the eigenvalues of ``pinv(U[:-1]) U[1:]`` are the poles. Channels share the
-poles, so their Hankel matrices are stacked side by side (each scaled to unit RMS). The
+poles, so their Hankel matrices are stacked side by side (each scaled to unit RMS about its
+straight-line trend). The
 amplitudes ``a`` follow by linear least squares, and the reconstruction's residual says how
 well the record is a sum of ``r`` decaying modes.
 
-``r = 2 n + 2``: the ``n`` modes asked for with their conjugates, and room for the rigid mode's
-constant and ramp. Real poles and poles with less than one cycle in the record (the rigid
-mode, drift, offsets) are set aside; of the oscillating ones, the ``n`` with the most energy
-in the record (RMS over the window, summed over channels) are the modes. Without noise the
-poles are exact; with noise, their error shrinks as the record lengthens.
+``r = 2 (n + EXTRA_MODES) + 2``: the ``n`` modes asked for and ``EXTRA_MODES`` more (a real
+arm's higher modes, which would otherwise bias the lower ones), each with its conjugate, and
+room for the rigid mode's constant and ramp. Real poles and poles with less than one cycle in
+the window (the rigid mode, drift, offsets) are set aside, and so are modes no stronger than
+``NOISE_FACTOR`` times the noise (what the model leaves of the record) in every channel; of
+the rest, the ``n`` lowest are the modes. Without noise, and with no more modes in the record
+than fitted, the poles are exact; with noise, their error shrinks as the record lengthens,
+while its lags (at most ``MAX_ROWS``) span a period or more of each mode (see ``lag_span_s``).
 
 Modes above the Nyquist frequency ``1 / (2 dt)`` fold back onto lower frequencies: sample at
 several times the highest mode that the record holds.
@@ -44,11 +48,18 @@ the same frequency and damping errors as 400, within the spread of five noise se
 time."""
 QR_BLOCK = 4096
 """Rows of the Hankel matrix's transpose per QR step."""
+EXTRA_MODES = 4
+"""Modes fitted beyond those asked for: a real arm's record holds its higher modes too, and a
+model without them shifts the lower ones (the paper's arm simulated with 8 modes, asked for 2
+with none extra: mode 3 taken for mode 2; for 3, mode 2's damping ratio 9-27 % off)."""
+NOISE_FACTOR = 3.0
+"""A mode counts when its RMS in some channel is above this many times what the model leaves
+of that channel (the noise), or of ``MIN_RMS`` (round-off) on a noise-free record."""
 MIN_RMS = 1e-6
-"""An oscillating pole pair whose RMS over the window is below this fraction of the record's
-(each channel scaled to unit RMS) is round-off, not a mode."""
-GRID_RTOL = 0.05
-"""Sample times may stray from a uniform grid by this fraction of the sample time (rounding)."""
+"""The noise floor of a noise-free record, as a fraction of each channel's RMS."""
+GRID_RTOL = 0.5
+"""Sample times may stray from a uniform grid by this fraction of the sample time: each is still
+nearest its own sample, as times written with few decimals are (1024 Hz to 4 decimals: 0.26)."""
 
 
 class Modes(NamedTuple):
@@ -60,11 +71,14 @@ class Modes(NamedTuple):
       rms: [n, n_ch] each mode's RMS over the window in each channel (the channel's units).
       dt: the sample time (s).
       start_s, end_s: the window of the record used (s, the record's clock).
-      residual: the RMS of the record minus its reconstruction, as a fraction of the
-        record's RMS, over all channels (each scaled to unit RMS): near 0 for a clean free
-        decay.
+      residual: the RMS of the record minus its model, as a fraction of the RMS of the
+        model's oscillating part (offset and drift left out), over all channels (each scaled
+        to unit RMS about its trend): near 0 for a clean free decay.
       reconstruction: [N, n_ch] the record's model over the window, from every pole found
-        (the rigid mode's included).
+        (the rigid mode's, and the higher modes', included).
+      order: the number of poles fitted.
+      lag_span_s: the time the Hankel matrix's lags span (s). Shorter than a period of a
+        mode, that mode is poorly resolved: the record is sampled much faster than it needs.
     """
 
     frequencies_hz: np.ndarray
@@ -75,6 +89,13 @@ class Modes(NamedTuple):
     end_s: float
     residual: float
     reconstruction: np.ndarray
+    order: int
+    lag_span_s: float
+
+    @property
+    def times(self) -> np.ndarray:
+        """[N] the sample times of the window (s)."""
+        return self.start_s + self.dt * np.arange(self.reconstruction.shape[0])
 
     def as_dict(self) -> dict[str, Any]:
         """Plain numbers for JSON."""
@@ -86,6 +107,8 @@ class Modes(NamedTuple):
             "start_s": self.start_s,
             "end_s": self.end_s,
             "residual": self.residual,
+            "order": self.order,
+            "lag_span_s": self.lag_span_s,
         }
 
 
@@ -100,36 +123,50 @@ def read_record(path: str | os.PathLike, option: str = "--record") -> tuple[np.n
       ValueError: naming ``option`` for a file that is missing or not such a table.
     """
     try:
-        with open(path, encoding="utf-8") as f:
+        with open(path, encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of the first cell
             lines = [line.split("#", 1)[0].strip() for line in f]
     except (OSError, UnicodeDecodeError) as err:
         raise ValueError(f"{option}: cannot read {os.fspath(path)!r}: {err}") from None
-    rows = [(i + 1, [cell.strip() for cell in line.split(",")]) for i, line in enumerate(lines) if line]
+    # a trailing comma (spreadsheet exports) leaves an empty last cell: not a column
+    rows = [(i + 1, _cells(line)) for i, line in enumerate(lines) if line]
     if not rows:
         raise ValueError(f"{option}: {os.fspath(path)!r} holds no rows")
     names = None
-    try:
-        [float(cell) for cell in rows[0][1]]
-    except ValueError:
+    if not all(_is_number(cell) for cell in rows[0][1]):
         (_, names), rows = rows[0], rows[1:]
-    width = len(names) if names is not None else len(rows[0][1]) if rows else 0
+    width = len(names) if names is not None else len(rows[0][1])
     if width < 2:
         raise ValueError(f"{option}: {os.fspath(path)!r} must have a time column (s) and at least one channel, comma-separated")
     values = []
     for number, cells in rows:
-        try:
-            if len(cells) != width:
-                raise ValueError(f"{len(cells)} columns, not {width}")
-            values.append([float(cell) for cell in cells])
-        except ValueError as err:
-            raise ValueError(f"{option}: line {number} of {os.fspath(path)!r}: {err}") from None
-    table = np.asarray(values, np.float64).reshape(-1, width)
+        if len(cells) != width:
+            raise ValueError(f"{option}: line {number} of {os.fspath(path)!r}: {len(cells)} columns, not {width}")
+        bad = [cell for cell in cells if not (_is_number(cell) and math.isfinite(float(cell)))]
+        if bad:
+            raise ValueError(f"{option}: line {number} of {os.fspath(path)!r}: {bad[0]!r} is not a finite number")
+        values.append([float(cell) for cell in cells])
+    if not values:
+        raise ValueError(f"{option}: {os.fspath(path)!r} holds no rows of numbers")
+    table = np.asarray(values, np.float64)
     names = list(names[1:]) if names is not None else [f"channel {c}" for c in range(1, width)]
     return table[:, 0], table[:, 1:], names
 
 
+def _cells(line: str) -> list[str]:
+    cells = [cell.strip() for cell in line.split(",")]
+    return cells[:-1] if len(cells) > 1 and not cells[-1] else cells
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
 def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = None, end_s: float | None = None) -> Modes:
-    """The ``n_modes`` strongest oscillating modes of a free-vibration record.
+    """The ``n_modes`` lowest modes above the noise of a free-vibration record.
 
     Args:
       t: [N] sample times (s), uniform.
@@ -141,7 +178,7 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
     Raises:
       ValueError: naming the argument for a record that is not finite, uniformly sampled, or
         long enough for ``n_modes``, or a window outside it; and when fewer than ``n_modes``
-        oscillating modes are found, or one that does not decay (not a free decay).
+        modes stand above the noise, or one of them does not decay (not a free decay).
     """
     n_modes = checks.integer("n_modes", n_modes, high=100)
     t = checks.real_array("t", t).astype(np.float64)
@@ -153,45 +190,67 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
         raise ValueError("the record must be finite: it holds NaN or infinite values")
     if np.any(np.diff(t) <= 0):
         raise ValueError("t must be strictly ascending (s)")
-    lo = t[0] if start_s is None else checks.number("start_s", start_s, -math.inf)
-    hi = t[-1] if end_s is None else checks.number("end_s", end_s, -math.inf)
+    lo = t[0] if start_s is None else _time("start_s", start_s)
+    hi = t[-1] if end_s is None else _time("end_s", end_s)
+    if hi <= lo:
+        raise ValueError(f"end_s must be after start_s; got start_s = {lo:g} s, end_s = {hi:g} s")
     window = (t >= lo) & (t <= hi)
     t, y = t[window], y[window]
-    order = 2 * n_modes + 2
-    needed = 3 * (order + 1)
+    order = 2 * (n_modes + EXTRA_MODES) + 2
+    needed = 3 * (order + 1)  # lags (N / 3) above the order
     if t.size < needed:
-        raise ValueError(f"the window [{lo:g}, {hi:g}] s holds {t.size} samples; {n_modes} modes need at least {needed} (start_s, end_s, or a longer record)")
-    dt = (t[-1] - t[0]) / (t.size - 1)
-    if np.max(np.abs(t - (t[0] + dt * np.arange(t.size)))) > GRID_RTOL * dt:
-        raise ValueError(f"t must be uniformly sampled (within {GRID_RTOL:g} of a sample time); resample the record first")
-    scale = np.sqrt(np.mean(y**2, axis=0))
-    if np.any(scale == 0):
-        raise ValueError(f"channel(s) {(np.flatnonzero(scale == 0) + 1).tolist()} of y are 0 throughout the window")
-    poles, rms, reconstruction = _poles(y / scale, order)
-    residual = float(np.sqrt(np.mean((reconstruction - y / scale) ** 2)))
+        raise ValueError(f"the window {lo:g}-{hi:g} s holds {t.size} samples; {n_modes} modes need at least {needed} (a wider window or a longer record)")
+    # the grid that fits the times best: rounding of the times written averages out
+    steps = np.arange(t.size)
+    t0, dt = np.polynomial.polynomial.polyfit(steps, t, 1)
+    if np.max(np.abs(t - (t0 + dt * steps))) > GRID_RTOL * dt:
+        raise ValueError(f"t must be uniformly sampled (within {GRID_RTOL:g} of a sample time, which allows for rounding); resample the record first")
+    # each channel scaled to unit RMS about its straight-line trend: an offset or a drift says
+    # nothing of how strong the modes are
+    trend = np.polynomial.polynomial.polyfit(steps, y, 1)
+    scale = np.sqrt(np.mean((y - trend[0] - np.outer(steps, trend[1])) ** 2, axis=0))
+    flat = np.flatnonzero(scale <= 1e-12 * np.max(np.abs(y), axis=0))  # round-off about the line
+    if flat.size:
+        raise ValueError(f"channel(s) {(flat + 1).tolist()} of y are constant or a straight line throughout the window")
+    poles, amplitudes, basis, lags = _poles(y / scale, order)
+    noise = np.sqrt(np.mean((np.real(basis @ amplitudes) - y / scale) ** 2, axis=0))  # [n_ch]
+    # (f Re w)^2 averages f^2 (|w|^2 + Re w^2) / 2: f = 2 for a pole and its conjugate, 1 for a real pole
+    factor = np.where(poles.imag != 0, 2.0, 1.0)[:, None]
+    rms = factor * np.sqrt(np.maximum(np.abs(amplitudes) ** 2 * np.mean(np.abs(basis) ** 2, axis=0)[:, None] + np.real(amplitudes**2 * np.mean(basis**2, axis=0)[:, None]), 0.0) / 2)
     with np.errstate(divide="ignore"):  # a pole at 0 (noise) is no mode
         s = np.log(poles) / dt
     # one of each conjugate pair (real poles, negative ones included, are not modes), with a
-    # cycle or more in the window, and more than round-off in it
-    oscillating = np.flatnonzero((poles.imag > 0) & (s.imag * (t[-1] - t[0]) > 2 * np.pi) & (np.sqrt(np.sum(rms**2, axis=1)) > MIN_RMS))
-    if oscillating.size < n_modes:
-        raise ValueError(
-            f"found {oscillating.size} oscillating mode(s) in the window, not the {n_modes} asked for: "
-            "ask for fewer, or give a longer window of a free decay"
-        )
-    strongest = oscillating[np.argsort(-np.sum(rms[oscillating] ** 2, axis=1))[:n_modes]]
-    strongest = strongest[np.argsort(np.abs(s[strongest]))]
-    omega = np.abs(s[strongest])
-    damping = -s[strongest].real / omega
+    # cycle or more in the window
+    oscillating = (poles.imag > 0) & (s.imag * (t[-1] - t[0]) > 2 * np.pi)
+    modes = 2 * np.real(basis[:, oscillating] @ amplitudes[oscillating])
+    residual = float(np.sqrt(np.mean(noise**2) / np.mean(modes**2))) if np.any(oscillating) else math.inf
+    # above the noise in some channel: what is left of the record, or round-off
+    found = np.flatnonzero(oscillating & np.any(rms > NOISE_FACTOR * np.maximum(noise, MIN_RMS), axis=1))
+    found = found[np.argsort(np.abs(s[found]))]
+    if found.size < n_modes:
+        shown = f" ({', '.join(f'{abs(f) / (2 * np.pi):.4g} Hz' for f in s[found])})" if found.size else ""
+        raise ValueError(f"found {found.size} mode(s) above the noise in the window{shown}, not the {n_modes} asked for: ask for fewer, or give a longer window of a free decay")
+    kept = found[:n_modes]  # the lowest
+    omega = np.abs(s[kept])
+    damping = -s[kept].real / omega
     if np.any(damping <= 0):
         growing = ", ".join(f"{w / (2 * np.pi):.4g} Hz" for w, z in zip(omega, damping) if z <= 0)
         raise ValueError(f"the mode(s) at {growing} do not decay in the window: it must be a free decay, after the excitation has ended (start_s)")
-    return Modes(omega / (2 * np.pi), damping, rms[strongest] * scale, float(dt), float(t[0]), float(t[-1]), residual, reconstruction * scale)
+    reconstruction = np.real(basis @ amplitudes) * scale
+    return Modes(omega / (2 * np.pi), damping, rms[kept] * scale, float(dt), float(t[0]), float(t[-1]), residual, reconstruction, order, (lags - 1) * float(dt))
 
 
-def _poles(y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ESPRIT on the channels of ``y`` [N, n_ch]: ``order`` poles, each one's RMS over the
-    window in each channel [order, n_ch], and the reconstruction [N, n_ch] from them all."""
+def _time(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite time (s); got {value!r}")
+    return float(value)
+
+
+def _poles(y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """ESPRIT on the channels of ``y`` [N, n_ch]: ``order`` poles ``z``, their amplitudes
+    [order, n_ch], the basis ``z^t`` [N, order] they multiply (each column divided by its
+    largest magnitude, so that a growing pole does not overflow over a long window), and the
+    number of lags."""
     n = y.shape[0]
     lags = min(n // 3, MAX_ROWS) + 1
     # The Hankel matrix H = R^T Q^T has the left singular vectors of R^T: R from a QR of H^T
@@ -204,13 +263,11 @@ def _poles(y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
             r = np.linalg.qr(np.concatenate([r, windows[first : first + QR_BLOCK]]), mode="r")
     u = np.linalg.svd(r.T)[0][:, :order]
     poles = np.linalg.eigvals(np.linalg.lstsq(u[:-1], u[1:], rcond=None)[0]).astype(np.complex128)
-    # z^t, each column divided by its largest magnitude (z^0, or z^(N-1) for a growing pole,
-    # which would otherwise overflow over a long window)
     magnitude = np.abs(poles)
     steps = np.arange(n)[:, None]
     growing = magnitude > 1
-    basis = np.where(growing, (poles / np.where(growing, magnitude, 1)) ** steps * np.where(growing, magnitude, 1) ** (steps - (n - 1)), poles**steps)
+    basis = np.empty((n, order), np.complex128)
+    basis[:, ~growing] = poles[~growing] ** steps
+    basis[:, growing] = (poles[growing] / magnitude[growing]) ** steps * magnitude[growing] ** (steps - (n - 1))
     amplitudes = np.linalg.lstsq(basis, y.astype(np.complex128), rcond=None)[0]
-    # a mode is a pole and its conjugate, 2 Re(a z^t); a real pole alone, Re(a z^t)
-    parts = np.real(basis[:, :, None] * amplitudes[None]) * np.where(poles.imag != 0, 2.0, 1.0)[None, :, None]
-    return poles, np.sqrt(np.mean(parts**2, axis=0)), np.real(basis @ amplitudes)
+    return poles, amplitudes, basis, lags
