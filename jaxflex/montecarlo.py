@@ -33,6 +33,7 @@ from jaxflex import beam, checks, fileio
 from jaxflex.analysis.metrics import diverged
 from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
+from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
 from jaxflex.plant import METHODS, check_rk4_step, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
@@ -118,7 +119,7 @@ class MCConfig:
             raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
-        object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
+        object.__setattr__(self, "fuzzy_temperature", check_temperature(self.fuzzy_temperature, "fuzzy_temperature"))
         object.__setattr__(self, "beam", beam.plain_params(self.beam))
         if self.method == "rk4":
             check_rk4_step(make_plant(self.beam, self.n_modes), self.scenarios.dt)

@@ -27,7 +27,7 @@ from jaxflex.analysis.metrics import diverged
 from jaxflex.controllers import by_name
 from jaxflex.controllers.base import same_dt
 from jaxflex.controllers.dfs import CAPACITY_REMEDY
-from jaxflex.controllers.fuzzy import fuzzy_params, fuzzy_surface
+from jaxflex.controllers.fuzzy import check_temperature, fuzzy_params, fuzzy_surface
 from jaxflex.controllers.registry import PARAMETERS
 from jaxflex.plant import METHODS, discretize, make_plant, rk4_amplified_omega
 from jaxflex.rollout import rollout
@@ -307,7 +307,7 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
         "capacity": checks.integer(f"--params: {path}'s capacity", config.get("capacity", 64)),
         "delay": config.get("delay", "linear"),
         "pade_order": checks.integer(f"--params: {path}'s pade_order", config.get("pade_order", 8)),
-        "fuzzy_temperature": checks.number(f"--params: {path}'s fuzzy_temperature", config.get("fuzzy_temperature", 0.0)),
+        "fuzzy_temperature": check_temperature(config.get("fuzzy_temperature", 0.0), f"--params: {path}'s fuzzy_temperature"),
     }
     table = config.get("scenarios", {})
     dt = checks.number(f"--params: {path}'s scenarios.dt", table.get("dt", DT) if isinstance(table, dict) else table, strict=True)

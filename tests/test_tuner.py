@@ -401,8 +401,9 @@ def test_bad_input_is_refused(tmp_path):
         TuneConfig(controller="lqr")
     with pytest.raises(ValueError, match="delay must be one of"):
         TuneConfig(delay="sinc")
-    with pytest.raises(ValueError, match="fuzzy_temperature must be a finite number >= 0"):
-        TuneConfig(fuzzy_temperature=-0.1)
+    for temperature in (-0.1, 1e155):
+        with pytest.raises(ValueError, match=r"fuzzy_temperature must be 0 \(the faithful controller\) or a Python float in \[1e-05, 1\]"):
+            TuneConfig(fuzzy_temperature=temperature)
     with pytest.raises(ValueError, match=r"unknown config key\(s\) \['stepz'\]"):
         TuneConfig.from_mapping({"stepz": 3})
     with pytest.raises(ValueError, match=r"unknown scenario key\(s\) \['noise'\]"):

@@ -28,6 +28,7 @@ from jaxflex import beam, checks, fileio
 from jaxflex.analysis import stability
 from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
+from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
 from jaxflex.plant import METHODS, check_rk4_step, discretize, make_plant
 from jaxflex.rollout import rollout
@@ -103,7 +104,7 @@ class TuneConfig:
         object.__setattr__(self, "seed", checks.seed("seed", self.seed))
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
-        object.__setattr__(self, "fuzzy_temperature", checks.number("fuzzy_temperature", self.fuzzy_temperature))
+        object.__setattr__(self, "fuzzy_temperature", check_temperature(self.fuzzy_temperature, "fuzzy_temperature"))
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
         if not isinstance(self.scenarios, ScenarioSpec):
