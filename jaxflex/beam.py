@@ -102,8 +102,14 @@ _POSITIVE_FIELDS = (
 _NONNEGATIVE_FIELDS = ("payload_mass_kg", "payload_inertia_kg_m2", "damping_ratio")
 
 
-def check_beam_params(params: BeamParams) -> None:
+def check_beam_params(params: BeamParams, dtype: jax.typing.DTypeLike | None = None) -> None:
     """Value checks on concrete parameters (skipped for traced leaves).
+
+    Args:
+      params: the parameters.
+      dtype: the dtype they will be simulated in (``structural_dtype``), or None. When given,
+        each field must also be representable in it: finite (1e39 N/m^2 is finite in float64
+        but inf in float32), and a positive field at least its smallest normal number (else 0).
 
     Raises:
       ValueError: naming the field and its accepted range, or ``params`` when it is not a
@@ -122,6 +128,14 @@ def check_beam_params(params: BeamParams) -> None:
             raise ValueError(f"BeamParams.{name} must be > 0; got {value}")
         if name not in _POSITIVE_FIELDS and not np.all(arr >= 0):
             raise ValueError(f"BeamParams.{name} must be >= 0; got {value}")
+        if dtype is not None:
+            info = jnp.finfo(dtype)
+            low = info.tiny if name in _POSITIVE_FIELDS else 0.0
+            if not np.all((arr >= low) & (arr <= info.max)):
+                raise ValueError(
+                    f"BeamParams.{name} must be in [{low:.4g}, {info.max:.4g}] to be simulated in {jnp.dtype(dtype).name} "
+                    f"(float64 with jax_enable_x64, --x64 on the command line); got {value}"
+                )
     if (params.rayleigh_alpha is None) != (params.rayleigh_beta is None):
         raise ValueError("BeamParams.rayleigh_alpha and rayleigh_beta must be given together (or both None)")
 
@@ -230,13 +244,18 @@ def mode_shapes(x_over_l: ArrayLike, n_modes: int) -> jax.Array:
     return hyper - jnp.cos(z) + sigma[None, :] * jnp.sin(z)
 
 
+def structural_dtype(params: BeamParams) -> jnp.dtype:
+    """The floating dtype the arm's matrices are built in: that of its length, Young's modulus
+    and density, at least JAX's default float (float32 unless ``jax_enable_x64``)."""
+    return jnp.result_type(jnp.asarray(params.length_m), params.youngs_modulus_pa, params.density_kg_m3, float)
+
+
 @partial(jax.jit, static_argnums=1)
 def _structural(params: BeamParams, n_modes: int):
     """Mass and stiffness matrices and input maps (no damping); jitted so eager calls are cheap."""
     lam_np, tip_np, slope_np = _clamped_free_constants(n_modes)
-    length = jnp.asarray(params.length_m)
-    dtype = jnp.result_type(length, params.youngs_modulus_pa, params.density_kg_m3, float)
-    length = length.astype(dtype)
+    dtype = structural_dtype(params)
+    length = jnp.asarray(params.length_m).astype(dtype)
     lam = jnp.asarray(lam_np, dtype)
     tip = jnp.asarray(tip_np, dtype)
     beta = lam / length

@@ -89,8 +89,21 @@ def make_plant(params: beam.BeamParams | None = None, n_modes: int = 2) -> Linea
       n_modes: number of assumed modes (static int >= 1).
     """
     params = beam.BeamParams() if params is None else params
-    beam.check_beam_params(params)
-    return _make_plant(params, beam.check_n_modes(n_modes))
+    beam.check_beam_params(params, beam.structural_dtype(params))
+    plant = _make_plant(params, beam.check_n_modes(n_modes))
+    _check_finite_maps(plant, ("A", "B", "E"), f"for {params} (check the units, or simulate in float64 with jax_enable_x64, --x64)")
+    return plant
+
+
+def _check_finite_maps(plant: LinearPlant | DiscretePlant, names: tuple[str, ...], cause: str) -> None:
+    """Refuse a concrete plant whose matrices ``names`` hold inf or NaN, naming the first such
+    matrix, its dtype and ``cause`` (traced plants pass: they are checked where built concrete)."""
+    for name in names:
+        m = getattr(plant, name)
+        if isinstance(m, jax.core.Tracer):
+            return
+        if not np.all(np.isfinite(np.asarray(m))):
+            raise ValueError(f"the plant's {name} must be finite in {m.dtype}; got inf or NaN {cause}")
 
 
 @partial(jax.jit, static_argnums=1)
@@ -133,7 +146,10 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") ->
     check_dt(dt)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
-    return _discretize(plant, dt, method)
+    sampled = _discretize(plant, dt, method)
+    hint = " or method = 'zoh'" if method == "rk4" else ""
+    _check_finite_maps(sampled, ("Ad", "Bd", "Ed"), f"at dt = {float(dt):g} s, method = {method!r} (use a smaller dt{hint})")
+    return sampled
 
 
 def rk4_amplified_omega(plant: LinearPlant, dt: float) -> float | None:

@@ -259,3 +259,32 @@ def test_measurement_and_performance_maps_read_the_documented_states():
         np.testing.assert_array_equal(cz[1, [0, *range(n_q, 2 * n_q)]], 0.0)
         np.testing.assert_allclose(np.abs(cz[1, 1:n_q]), 2.0, rtol=1e-12)
         np.testing.assert_allclose(cz[2], 1.3 * expected_c[0] + cz[1], rtol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "field, value, match",
+    [
+        ("youngs_modulus_pa", 1e39, r"BeamParams.youngs_modulus_pa must be in \[1.175e-38, 3.403e\+38\] to be simulated in float32 .*; got 1e\+39"),
+        ("hub_inertia_kg_m2", 1e39, r"BeamParams.hub_inertia_kg_m2 must be in \[1.175e-38, 3.403e\+38\] to be simulated in float32"),
+        ("density_kg_m3", 1e-40, r"BeamParams.density_kg_m3 must be in \[1.175e-38, 3.403e\+38\] to be simulated in float32 .*; got 1e-40"),
+        ("damping_ratio", 1e39, r"BeamParams.damping_ratio must be in \[0, 3.403e\+38\] to be simulated in float32"),
+        ("length_m", 1e20, r"the plant's A must be finite in float32; got inf or NaN for BeamParams\(length_m=1e\+20"),
+    ],
+)
+def test_arm_that_overflows_float32_is_refused_by_name(field, value, match):
+    """A value finite in float64 (what configs are checked in) but not in the float32 of the
+    run, or one whose plant matrices overflow float32, was built into an inf/NaN plant."""
+    arm = BeamParams(**{field: value})
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match=match):
+            make_plant(arm)
+    assert all(np.all(np.isfinite(m)) for m in make_plant(arm))  # float64 holds it
+
+
+def test_sampled_plant_that_overflows_is_refused():
+    """A stiff arm's RK4 polynomial in float32 overflows (the exact ZOH does not)."""
+    with jax.enable_x64(False):
+        stiff = make_plant(BeamParams(youngs_modulus_pa=1e38))
+        with pytest.raises(ValueError, match=r"the plant's Ad must be finite in float32; got inf or NaN at dt = 0.001 s, method = 'rk4' \(use a smaller dt or method = 'zoh'\)"):
+            discretize(stiff, 1e-3, "rk4")
+        assert np.all(np.isfinite(discretize(stiff, 1e-3, "zoh").Ad))
