@@ -5,6 +5,8 @@ arrays or files are accepted and stored as plain numbers) and raises ``ValueErro
 option and the accepted range. Bools are refused everywhere: ``True`` is an ``int`` to Python
 but never a count or a weight to a user. ``real_array`` is the type check of array-valued
 parameters (gains, centres, the arm's constants), whose ranges their own checks add.
+``instance`` refuses an object of the wrong kind (a continuous plant for a sampled one, an
+uncalled factory for what it builds) before it fails deep inside with an AttributeError.
 """
 
 from __future__ import annotations
@@ -49,6 +51,18 @@ def number(name: str, value: Any, low: float = 0.0, *, strict: bool = False, uni
     ):
         raise ValueError(f"{name} must be a finite number{f' of {unit}' if unit else ''} {bound}; got {value!r}")
     return float(value)
+
+
+def instance(name: str, value: Any, expected: type, build: str) -> Any:
+    """``value`` when it is an ``expected``; else ``ValueError`` naming ``name``, the expected
+    type, how to get one (``build``, e.g. ``"build one with plant.discretize(...)"``) and what
+    was given (an uncalled function by its name)."""
+    if not isinstance(value, expected):
+        what = type(value).__name__
+        if callable(value) and not isinstance(value, type) and hasattr(value, "__name__"):
+            what = f"the function {value.__name__} itself: call it to build one"
+        raise ValueError(f"{name} must be a {expected.__name__} ({build}); got {what}")
+    return value
 
 
 def real_array(name: str, value: Any, *, scalar: bool = False) -> np.ndarray:

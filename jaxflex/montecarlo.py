@@ -277,6 +277,7 @@ def run_montecarlo(
     Raises:
       ValueError: bad configuration, or a resume into a folder made by another configuration.
     """
+    checks.instance("config", config, MCConfig, "build one with MCConfig(...)")
     out_dir = os.fspath(out_dir)
     meta_path, summary_path, chunks_dir = (os.path.join(out_dir, name) for name in (META, "summary.json", "chunks"))
     meta = {"fingerprint": config.fingerprint(), "chunk": config.run_chunk, "config": config.fingerprint_fields()}

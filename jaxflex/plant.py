@@ -142,7 +142,12 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") ->
       plant: continuous-time plant.
       dt: sample time (s), finite and > 0; default 1 ms (the paper's 1 kHz).
       method: ``"rk4"`` (the paper's integrator) or ``"zoh"`` (exact).
+
+    Raises:
+      ValueError: naming ``plant`` when it is not a LinearPlant, ``dt`` or ``method`` out of
+        range, or a sampled matrix that is not finite.
     """
+    checks.instance("plant", plant, LinearPlant, "build one with make_plant(...); a DiscretePlant is already sampled")
     check_dt(dt)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
@@ -164,6 +169,7 @@ def rk4_amplified_omega(plant: LinearPlant, dt: float) -> float | None:
       plant: a concrete continuous-time plant.
       dt: sample time (s), finite and > 0.
     """
+    checks.instance("plant", plant, LinearPlant, "build one with make_plant(...); a DiscretePlant is already sampled")
     check_dt(dt)
     lam = np.linalg.eigvals(np.asarray(plant.A, dtype=float))
     z = lam * float(dt)

@@ -44,7 +44,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.analysis.metrics import DIVERGENCE_THRESHOLD
-from jaxflex.controllers.base import Controller, is_concrete, same_dt
+from jaxflex import checks
+from jaxflex.controllers.base import Controller, check_controller, is_concrete, same_dt
 from jaxflex.plant import DiscretePlant
 from jaxflex.scenarios import Scenario
 
@@ -108,6 +109,7 @@ OUTPUTS = ("trajectory", "metrics")
 
 def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settling_band: float, mode_freqs_hz: Any) -> None:
     """Shapes and dtypes of the loop's inputs, and the metrics' options, named when wrong."""
+    checks.instance("plant", plant, DiscretePlant, "build one with plant.discretize(...)")
     n_x = plant.Ad.shape[-1]
     if plant.Ad.shape != (n_x, n_x):
         raise ValueError(f"Ad must be square; got {plant.Ad.shape}")
@@ -166,7 +168,8 @@ def rollout(
         (metrics only).
 
     Raises:
-      ValueError: naming a shape, dtype or option that is wrong (parameter values through
+      ValueError: naming a plant that is not a DiscretePlant, a controller that is not a
+        Controller (a factory passed uncalled), a shape, dtype or option that is wrong (parameter values through
         the controller's ``check`` where they are concrete), or a controller built for
         another sample time than the plant's (a traced plant, e.g. under ``jit``, runs
         NaN instead and reports itself diverged).
@@ -176,6 +179,7 @@ def rollout(
       non-finite or huge values; ``RunMetrics.diverged`` and
       :func:`jaxflex.analysis.metrics.diverged` report it.
     """
+    check_controller("controller", controller)
     _check_inputs(plant, scenario, params, settling_band, mode_freqs_hz)
     if output not in OUTPUTS:
         raise ValueError(f"output must be one of {OUTPUTS}; got {output!r}")

@@ -443,3 +443,10 @@ def test_the_dtype_is_part_of_a_runs_fingerprint():
     with jax.enable_x64(True):
         f64 = config.fingerprint_fields(), config.fingerprint()
     assert (f32[0]["dtype"], f64[0]["dtype"]) == ("float32", "float64") and f32[1] != f64[1]
+
+
+def test_a_config_of_the_wrong_kind_is_refused(tmp_path):
+    """A dict failed with an AttributeError ('dict' object has no attribute 'fingerprint')."""
+    with pytest.raises(ValueError, match=r"config must be a MCConfig \(build one with MCConfig\(...\)\); got dict"):
+        run_montecarlo({"n_scenarios": 8}, tmp_path)
+    assert not os.listdir(tmp_path)

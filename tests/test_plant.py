@@ -288,3 +288,13 @@ def test_sampled_plant_that_overflows_is_refused():
         with pytest.raises(ValueError, match=r"the plant's Ad must be finite in float32; got inf or NaN at dt = 0.001 s, method = 'rk4' \(use a smaller dt or method = 'zoh'\)"):
             discretize(stiff, 1e-3, "rk4")
         assert np.all(np.isfinite(discretize(stiff, 1e-3, "zoh").Ad))
+
+
+def test_an_already_sampled_plant_is_refused_by_name():
+    """discretize and the RK4 check read plant.A: a DiscretePlant failed with an AttributeError."""
+    sampled = discretize(make_plant(BeamParams(), 2), 1e-3, "rk4")
+    match = r"plant must be a LinearPlant \(build one with make_plant\(...\); a DiscretePlant is already sampled\); got DiscretePlant"
+    with pytest.raises(ValueError, match=match):
+        discretize(sampled, 1e-3, "zoh")
+    with pytest.raises(ValueError, match=match):
+        plant_mod.check_rk4_step(sampled, 1e-3)

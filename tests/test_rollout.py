@@ -238,6 +238,25 @@ def test_bad_scenario_shapes_are_rejected(plant2):
         dfs(dt=0.0)
 
 
+def test_api_mix_ups_are_refused_by_name(plant2):
+    """A continuous plant, an uncalled factory or a Controller without a check failed deep
+    inside with an AttributeError or a TypeError ('NoneType' object is not callable)."""
+    from jaxflex.controllers import Controller
+
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    continuous = jf.make_plant(jf.BeamParams(), 2)
+    with pytest.raises(ValueError, match=r"plant must be a DiscretePlant \(build one with plant.discretize\(...\)\); got LinearPlant"):
+        jf.rollout(continuous, open_loop(), OpenLoopParams(), sc)
+    for factory in (dfs, fuzzy):
+        with pytest.raises(ValueError, match=rf"controller must be a Controller \(build one with dfs\(...\), .*\); got the function {factory.__name__} itself: call it"):
+            jf.rollout(plant2, factory, OpenLoopParams(), sc)
+    loop = open_loop()
+    with pytest.raises(ValueError, match=r"controller.check must be callable .*; got None"):
+        jf.rollout(plant2, Controller(loop.init, loop.step, None), OpenLoopParams(), sc)
+    with pytest.raises(ValueError, match=r"second must be a Controller .*; got the function pd itself: call it"):
+        combine(dfs(), pd)
+
+
 @pytest.mark.parametrize("u_shape", [(), (2,), (1, 1)])
 def test_a_controller_returning_another_torque_shape_is_refused(plant2, u_shape):
     """A scalar failed deep in the scan; a (2,) torque ran, with its second entry in the effort."""

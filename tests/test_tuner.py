@@ -3,6 +3,7 @@ compile-once, resume equals an uninterrupted run, held-out improvement, and bad 
 
 import dataclasses
 import math
+import os
 import json
 
 import jax
@@ -667,3 +668,14 @@ def test_dfs_plus_fuzzy_transform_keeps_the_pade_delay():
     got = run(pade.controller, pade.paper)
     np.testing.assert_allclose(got, run(ref_ctrl, ref_params), rtol=1e-12, atol=1e-15)
     assert np.max(np.abs(got - run(linear.controller, linear.paper))) > 1e-6 * np.max(np.abs(got))
+
+
+def test_config_and_optimizer_of_the_wrong_kind_are_refused(tmp_path):
+    """A dict for the config, or optax.adam uncalled, failed deep inside with an AttributeError."""
+    import optax
+
+    with pytest.raises(ValueError, match=r"config must be a TuneConfig \(build one with TuneConfig\(...\)\); got dict"):
+        tune({"controller": "dfs"}, tmp_path)
+    with pytest.raises(ValueError, match=r"optimizer must be a GradientTransformation \(e.g. optax.adam\(1e-2\)\); got the function adam itself: call it"):
+        tune(TuneConfig(controller="dfs", **SHARED), tmp_path, optimizer=optax.adam)
+    assert not os.listdir(tmp_path)

@@ -315,6 +315,9 @@ def tune(
       ValueError: bad configuration, a checkpoint of another run, or an objective that
         became NaN (the last checkpoint is kept).
     """
+    checks.instance("config", config, TuneConfig, "build one with TuneConfig(...)")
+    if optimizer is not None:
+        checks.instance("optimizer", optimizer, optax.GradientTransformation, "e.g. optax.adam(1e-2)")
     out_dir = os.fspath(out_dir)
     ckpt_path = os.path.join(out_dir, CHECKPOINT)
     fingerprint = config.fingerprint()

@@ -47,6 +47,16 @@ def is_concrete(tree: Any) -> bool:
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree))
 
 
+def check_controller(name: str, controller: Any) -> Controller:
+    """Refuse, by ``name``, what is not a :class:`Controller` of callables: a factory such as
+    ``dfs`` or ``fuzzy`` passed uncalled, or a ``check`` left None."""
+    checks.instance(name, controller, Controller, "build one with dfs(...), fuzzy(...), pd(...), by_name(...) or combine(...)")
+    for field in ("init", "step", "check"):
+        if not callable(getattr(controller, field)):
+            raise ValueError(f"{name}.{field} must be callable (see jaxflex.controllers.base); got {getattr(controller, field)!r}")
+    return controller
+
+
 def check_params_type(params: Any, expected: type) -> None:
     """Refuse, by name, parameters that are not an ``expected`` (a dict of gains, a bare tuple):
     they would fail deep in the step with an AttributeError."""
@@ -98,8 +108,11 @@ def combine(first: Controller, second: Controller) -> Controller:
     Parameters and states are pairs ``(first, second)``. The sum runs at the parts' ``dt``.
 
     Raises:
-      ValueError: when the two were built for different sample times.
+      ValueError: when either is not a Controller, or the two were built for different
+        sample times.
     """
+    check_controller("first", first)
+    check_controller("second", second)
     if first.dt is not None and second.dt is not None and not same_dt(first.dt, second.dt):
         raise ValueError(f"cannot combine controllers built for dt = {first.dt:g} s and dt = {second.dt:g} s: build both with one dt")
 
