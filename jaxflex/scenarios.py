@@ -76,12 +76,15 @@ def scenario_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str
 
 
 def horizon_steps(horizon_s: float, dt: float) -> int:
-    """Number of samples in ``horizon_s`` seconds at ``dt`` (both concrete, > 0)."""
-    for name, value in (("horizon_s", horizon_s), ("dt", dt)):
-        v = float(value)
-        if not (np.isfinite(v) and v > 0):
-            raise ValueError(f"{name} must be finite and > 0 (seconds); got {value}")
-    steps = int(round(float(horizon_s) / float(dt)))
+    """Number of samples in ``horizon_s`` seconds at ``dt`` (both concrete, > 0).
+
+    Raises:
+      ValueError: naming ``horizon_s`` or ``dt`` when it is not a finite number > 0 (a string
+        such as ``"3"`` or a bool is refused, not converted), or a horizon shorter than ``dt``.
+    """
+    horizon_s = checks.number("horizon_s", horizon_s, strict=True, unit="seconds")
+    dt = checks.number("dt", dt, strict=True, unit="seconds")
+    steps = int(round(horizon_s / dt))
     if steps < 1:
         raise ValueError(f"horizon_s must cover at least one sample of dt = {dt}; got {horizon_s}")
     return steps
@@ -107,7 +110,7 @@ def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, d
     plant_dt = float(plant.dt) if isinstance(plant, DiscretePlant) and is_concrete(plant.dt) else None
     if dt is None:
         dt = 1e-3 if plant_dt is None else plant_dt
-    elif plant_dt is not None and not math.isclose(float(dt), plant_dt, rel_tol=1e-6):  # a float32 plant holds dt rounded
+    elif plant_dt is not None and not math.isclose(checks.number("dt", dt, strict=True, unit="seconds"), plant_dt, rel_tol=1e-6):  # a float32 plant holds dt rounded
         raise ValueError(f"dt = {dt!r} s differs from the sampled plant's dt = {plant_dt:.7g} s: leave dt out, or sample the plant at it")
     steps = horizon_steps(horizon_s, dt)
     dtype = plant.C.dtype if dtype is None else dtype
@@ -157,7 +160,8 @@ class ScenarioSpec:
       impulse_max_n: peak of a rectangular tip-force pulse, amplitude uniform in
         [-impulse_max_n, impulse_max_n] (N), lasting ``impulse_duration_s``, starting uniformly
         in the first half of the horizon.
-      impulse_duration_s: pulse duration (s), >= dt when impulses are on.
+      impulse_duration_s: pulse duration (s), in [dt, horizon_s / 2] when impulses are on (a
+        pulse starts in the first half and must end within the horizon).
       step_max_n: amplitude of a tip-force step, uniform in [-step_max_n, step_max_n] (N),
         starting uniformly in the first half of the horizon.
       noise_angle_rad: standard deviation of the hub-angle sensor noise (rad).
@@ -199,6 +203,11 @@ class ScenarioSpec:
         if self.impulse_max_n > 0 and self.impulse_duration_s < self.dt:
             raise ValueError(f"impulse_duration_s must be >= dt = {self.dt} s when impulses are on; got {self.impulse_duration_s}")
         horizon_steps(self.horizon_s, self.dt)
+        if self.impulse_max_n > 0 and self.impulse_duration_s > self.horizon_s / 2:
+            raise ValueError(
+                f"impulse_duration_s must be <= horizon_s / 2 = {self.horizon_s / 2:g} s when impulses are on (a pulse starts in "
+                f"the first half of the horizon; a longer one was cut off at its end); got {self.impulse_duration_s:g}"
+            )
 
     @property
     def steps(self) -> int:

@@ -76,3 +76,26 @@ def test_a_payload_alone_perturbs_the_plant_and_adds_to_the_nominal_one():
     np.testing.assert_array_equal(np.asarray(p.youngs_modulus_scale), 1.0)
     loaded = perturbed_params(BeamParams(payload_mass_kg=0.1), PlantPerturbation(1.0, 1.0, 1.0, 0.02))
     assert loaded.payload_mass_kg == pytest.approx(0.12, rel=1e-15) and loaded.hub_inertia_kg_m2 == BeamParams().hub_inertia_kg_m2
+
+
+@pytest.mark.parametrize(
+    "name, value", [(name, value) for name in ("horizon_s", "dt") for value in ("3", True, float("nan"), 0.0)] + [("horizon_s", None)]
+)
+def test_paper_scenario_refuses_a_horizon_or_dt_that_is_not_a_number(name, value):
+    """horizon_s = "3" ran 3 s (float("3")) and True ran 1 s: both were taken as numbers."""
+    from jaxflex import make_plant
+    from jaxflex.scenarios import paper_scenario
+
+    with pytest.raises(ValueError, match=rf"{name} must be a finite number of seconds > 0; got {value!r}"):
+        paper_scenario(make_plant(), **{name: value})
+
+
+def test_an_impulse_that_outlasts_the_horizon_is_refused():
+    """A pulse starts in the first half of the horizon: one longer than horizon_s / 2 was cut off
+    at the end of the horizon (a 0.2 s pulse over 0.05 s lasted 26-44 samples, not 200)."""
+    with pytest.raises(ValueError, match=r"impulse_duration_s must be <= horizon_s / 2 = 0.025 s when impulses are on .*; got 0.2"):
+        ScenarioSpec(horizon_s=0.05, impulse_max_n=1.0, impulse_duration_s=0.2)
+    ScenarioSpec(horizon_s=0.05, impulse_duration_s=0.2)  # impulses off: the duration is unused
+    spec = ScenarioSpec(horizon_s=0.05, impulse_max_n=1.0, impulse_duration_s=0.025, include_paper=False)
+    force = np.asarray(sample_scenarios(spec, jax.random.key(0), 64).force[:, :, 0])
+    assert np.all(np.sum(force != 0, axis=1) == 25)  # every pulse whole
