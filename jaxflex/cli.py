@@ -123,6 +123,11 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument("--coordinator", default=None, help="with --distributed: coordinator host:port (default: detected, e.g. SLURM or Open MPI)")
     mc.add_argument("--num-processes", type=_positive_int, default=None, help="with --distributed: number of processes")
     mc.add_argument("--process-id", type=int, default=None, help="with --distributed: this process's index, 0-based")
+    # A negative number in exponent form is a value ("--k -1e3"), not an unknown option:
+    # argparse before Python 3.13 knew only -1 and -1.5 ("--k: expected one argument"); this
+    # is its pattern from 3.13 on. No option here starts with "-" and a digit.
+    for each in (parser, *sub.choices.values()):
+        each._negative_number_matcher = re.compile(r"-\.?\d")
     return parser
 
 

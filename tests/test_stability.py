@@ -587,3 +587,15 @@ def test_report_chart_rows_are_whole_samples_capped_at_80(tmp_path):
     result = stability_report.run(tmp_path, tau_max_s=0.087, n_k=2, n_cheb=16)
     assert result["chart"]["n_tau"] == 80
     np.testing.assert_allclose(result["chart"]["tau_range_s"], [0.001, 0.087], rtol=1e-12)
+
+
+def test_cli_reads_a_negative_number_in_exponent_form_as_a_value(tmp_path, capsys):
+    """``--k -1e3`` stopped in argparse ("argument --k: expected one argument"): -1e3 was taken
+    for an option. A negative gain is analysed (the loop is unstable); a negative frequency is
+    refused by the command, by name."""
+    from jaxflex import cli
+
+    assert cli._parser().parse_args(["stability", "--k", "-1e3"]).k == -1000.0
+    assert cli._parser().parse_args(["calibrate", "--freqs", "-1e1", "2.5E+2"]).freqs == [-10.0, 250.0]
+    assert cli.main(["calibrate", "--freqs", "-1e1", "--out", str(tmp_path / "cal")]) == 2
+    assert "freqs" in capsys.readouterr().err
