@@ -36,7 +36,6 @@ How the loop is laid out (same arithmetic, measured in ``benchmarks/README.md``;
 
 from __future__ import annotations
 
-import numbers
 from typing import Any, NamedTuple
 
 import jax
@@ -107,8 +106,9 @@ class RunMetrics(NamedTuple):
 OUTPUTS = ("trajectory", "metrics")
 
 
-def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settling_band: float, mode_freqs_hz: Any) -> None:
-    """Shapes and dtypes of the loop's inputs, and the metrics' options, named when wrong."""
+def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settling_band: Any, mode_freqs_hz: Any) -> float:
+    """Shapes and dtypes of the loop's inputs, and the metrics' options, named when wrong;
+    returns ``settling_band`` as a Python float (a constant of the loop)."""
     checks.instance("plant", plant, DiscretePlant, "build one with plant.discretize(...)")
     n_x = plant.Ad.shape[-1]
     if plant.Ad.shape != (n_x, n_x):
@@ -132,14 +132,17 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
                 f"params{jax.tree_util.keystr(path)} is {leaf_dtype}, wider than the plant's {dtype}: "
                 f"build the parameters in {dtype} (e.g. by_name(..., dtype=...))"
             )
-    if isinstance(settling_band, bool) or not isinstance(settling_band, numbers.Real) or not 0 < settling_band < 1:
-        raise ValueError(f"settling_band must be a number in (0, 1) (a fraction of the peak); got {settling_band!r}")
+    # A number or a concrete 0-d array (a jnp scalar); bools (kind "b"), strings and traced
+    # values are refused.
+    if not (is_concrete(settling_band) and np.ndim(settling_band) == 0 and np.asarray(settling_band).dtype.kind in "iuf" and 0 < float(settling_band) < 1):
+        raise ValueError(f"settling_band must be a number in (0, 1) (a fraction of the peak), concrete (not traced); got {settling_band!r}")
     if mode_freqs_hz is not None:
         freqs = jnp.asarray(mode_freqs_hz)
         if freqs.ndim > 1:
             raise ValueError(f"mode_freqs_hz must be a 1-D array of frequencies (Hz); got shape {freqs.shape}")
         if is_concrete(freqs) and not np.all(np.isfinite(np.asarray(freqs)) & (np.asarray(freqs) >= 0)):  # NumPy: no tracer under jit
             raise ValueError(f"mode_freqs_hz must be finite frequencies >= 0 (Hz); got {np.asarray(freqs)}")
+    return float(settling_band)
 
 
 def rollout(
@@ -163,7 +166,8 @@ def rollout(
         the perturbed plant, ``scenarios.scenario_plant(...)``, as ``plant``.
       output: ``"trajectory"`` (every sample, memory O(T)) or ``"metrics"`` (running
         metrics only, memory O(1) in T).
-      settling_band: band of the running settling time, as a fraction of the peak, in (0, 1).
+      settling_band: band of the running settling time, as a fraction of the peak, in (0, 1):
+        a number or a concrete 0-d array.
       mode_freqs_hz: [n_f] frequencies (Hz, finite, >= 0) of ``RunMetrics.modal_energy``
         (metrics only).
 
@@ -180,7 +184,7 @@ def rollout(
       :func:`jaxflex.analysis.metrics.diverged` report it.
     """
     check_controller("controller", controller)
-    _check_inputs(plant, scenario, params, settling_band, mode_freqs_hz)
+    settling_band = _check_inputs(plant, scenario, params, settling_band, mode_freqs_hz)
     if output not in OUTPUTS:
         raise ValueError(f"output must be one of {OUTPUTS}; got {output!r}")
     # The sample times first: parameters checked against another dt give misleading messages.

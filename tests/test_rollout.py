@@ -339,9 +339,15 @@ def test_paper_scenario_follows_the_sampled_plant_and_rollout_names_bad_inputs(p
         paper_scenario(plant2, dtype=jnp.int32)
     sc = paper_scenario(plant2, horizon_s=0.01)
     controller, params = dfs(), DFSParams(55.0, 0.005)
-    for band in (-1.0, 0.0, 1.0, 5.0, float("nan"), True):
+    for band in (-1.0, 0.0, 1.0, 5.0, float("nan"), True, "0.1", jnp.asarray([0.1]), None):
         with pytest.raises(ValueError, match=r"settling_band must be a number in \(0, 1\)"):
             jf.rollout(plant2, controller, params, sc, output="metrics", settling_band=band)
+    with pytest.raises(ValueError, match=r"settling_band must be a number in \(0, 1\) \(a fraction of the peak\), concrete \(not traced\)"):
+        jax.jit(lambda band: jf.rollout(plant2, controller, params, sc, output="metrics", settling_band=band))(0.1)
+    # A concrete jnp scalar is a number: the same run as the Python float (it was refused).
+    as_float = jf.rollout(plant2, controller, params, sc, output="metrics", settling_band=0.25)
+    as_array = jf.rollout(plant2, controller, params, sc, output="metrics", settling_band=jnp.asarray(0.25))
+    assert all(np.array_equal(a, b) for a, b in zip(as_float, as_array))
     with pytest.raises(ValueError, match="mode_freqs_hz must be finite frequencies >= 0"):
         jf.rollout(plant2, controller, params, sc, output="metrics", mode_freqs_hz=[float("nan")])
     with pytest.raises(ValueError, match="mode_freqs_hz must be a 1-D array"):
