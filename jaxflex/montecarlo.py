@@ -19,6 +19,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import numbers
 import os
 import sys
 import zipfile
@@ -105,13 +106,16 @@ class MCConfig:
         param_values(self.params)
         if not isinstance(self.scenarios, ScenarioSpec):
             raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")
+        # A NumPy or JAX array is a sequence of numbers to a user (its elements, not Python ones).
+        values = self.percentiles.tolist() if isinstance(self.percentiles, (np.ndarray, jax.Array)) else self.percentiles
         if (
-            isinstance(self.percentiles, (str, bytes))
-            or not isinstance(self.percentiles, Sequence)
-            or not self.percentiles
-            or any(isinstance(p, bool) or not (isinstance(p, (int, float)) and 0 <= p <= 100) for p in self.percentiles)
+            isinstance(values, (str, bytes))
+            or not isinstance(values, Sequence)
+            or not values
+            or any(isinstance(p, bool) or not (isinstance(p, numbers.Real) and 0 <= p <= 100) for p in values)
         ):
-            raise ValueError(f"percentiles must be numbers in [0, 100]; got {self.percentiles!r}")
+            raise ValueError(f"percentiles must be numbers in [0, 100] (a non-empty list, tuple or 1-D array); got {self.percentiles!r}")
+        object.__setattr__(self, "percentiles", tuple(float(p) for p in values))
         keys = [f"p{p:g}" for p in self.percentiles]
         if len(set(keys)) != len(keys):
             raise ValueError(f"percentiles must differ in their first 6 significant digits (each is reported as p<value>: {keys}); got {self.percentiles!r}")

@@ -450,3 +450,13 @@ def test_a_config_of_the_wrong_kind_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"config must be a MCConfig \(build one with MCConfig\(...\)\); got dict"):
         run_montecarlo({"n_scenarios": 8}, tmp_path)
     assert not os.listdir(tmp_path)
+
+
+def test_percentiles_may_be_an_array():
+    """A NumPy or JAX array of percentiles was refused as "must be numbers in [0, 100]" though
+    it was; NumPy float32 elements too. They are stored as a tuple of Python floats."""
+    for percentiles in (np.array([5.0, 50.0, 95.0]), jax.numpy.asarray([5.0, 50.0, 95.0]), [np.float32(5.0), 50, 95.0]):
+        assert MCConfig(percentiles=percentiles).percentiles == (5.0, 50.0, 95.0)
+    for percentiles in (np.array(50.0), np.array([5.0, 101.0]), np.array([[5.0]]), np.array([True])):
+        with pytest.raises(ValueError, match=r"percentiles must be numbers in \[0, 100\] \(a non-empty list, tuple or 1-D array\)"):
+            MCConfig(percentiles=percentiles)
