@@ -125,8 +125,9 @@ class MCConfig:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", check_temperature(self.fuzzy_temperature, "fuzzy_temperature"))
         object.__setattr__(self, "beam", beam.plain_params(self.beam))
+        plant = make_plant(self.beam, self.n_modes)  # refuses an arm not finite in the dtype of the run
         if self.method == "rk4":
-            check_rk4_step(make_plant(self.beam, self.n_modes), self.scenarios.dt)
+            check_rk4_step(plant, self.scenarios.dt)
 
     @property
     def run_chunk(self) -> int:

@@ -460,3 +460,12 @@ def test_percentiles_may_be_an_array():
     for percentiles in (np.array(50.0), np.array([5.0, 101.0]), np.array([[5.0]]), np.array([True])):
         with pytest.raises(ValueError, match=r"percentiles must be numbers in \[0, 100\] \(a non-empty list, tuple or 1-D array\)"):
             MCConfig(percentiles=percentiles)
+
+
+def test_an_arm_that_overflows_the_run_dtype_is_refused_with_the_config():
+    """With method = "zoh" the config built no plant: a float32 run printed the model at
+    "nan, nan Hz" before the arm was refused (and before the fix, ran an inf/NaN plant)."""
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match=r"BeamParams.youngs_modulus_pa must be in \[1.175e-38, 3.403e\+38\] to be simulated in float32"):
+            MCConfig(beam=BeamParams(youngs_modulus_pa=1e39), method="zoh")
+    MCConfig(beam=BeamParams(youngs_modulus_pa=1e39), method="zoh")  # float64 holds it

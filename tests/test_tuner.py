@@ -679,3 +679,9 @@ def test_config_and_optimizer_of_the_wrong_kind_are_refused(tmp_path):
     with pytest.raises(ValueError, match=r"optimizer must be a GradientTransformation \(e.g. optax.adam\(1e-2\)\); got the function adam itself: call it"):
         tune(TuneConfig(controller="dfs", **SHARED), tmp_path, optimizer=optax.adam)
     assert not os.listdir(tmp_path)
+
+
+def test_an_arm_that_overflows_the_run_dtype_is_refused_with_the_config():
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match=r"BeamParams.youngs_modulus_pa must be in \[1.175e-38, 3.403e\+38\] to be simulated in float32"):
+            TuneConfig(beam=jf.BeamParams(youngs_modulus_pa=1e39), method="zoh")

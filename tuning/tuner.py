@@ -119,8 +119,9 @@ class TuneConfig:
         if unknown:
             raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed)}")
         param_values(self.initial, "initial")
+        plant = make_plant(self.beam, self.n_modes)  # refuses an arm not finite in the dtype of the run
         if self.method == "rk4":
-            check_rk4_step(make_plant(self.beam, self.n_modes), self.scenarios.dt)
+            check_rk4_step(plant, self.scenarios.dt)
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
