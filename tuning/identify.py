@@ -132,7 +132,7 @@ def read_record(path: str | os.PathLike, option: str = "--record") -> tuple[np.n
     if not rows:
         raise ValueError(f"{option}: {os.fspath(path)!r} holds no rows")
     names = None
-    if not all(_is_number(cell) for cell in rows[0][1]):
+    if any(_number(cell) is None for cell in rows[0][1]):
         (_, names), rows = rows[0], rows[1:]
     width = len(names) if names is not None else len(rows[0][1])
     if width < 2:
@@ -141,10 +141,11 @@ def read_record(path: str | os.PathLike, option: str = "--record") -> tuple[np.n
     for number, cells in rows:
         if len(cells) != width:
             raise ValueError(f"{option}: line {number} of {os.fspath(path)!r}: {len(cells)} columns, not {width}")
-        bad = [cell for cell in cells if not (_is_number(cell) and math.isfinite(float(cell)))]
+        row = [_number(cell) for cell in cells]
+        bad = [cell for cell, value in zip(cells, row) if value is None or not math.isfinite(value)]
         if bad:
             raise ValueError(f"{option}: line {number} of {os.fspath(path)!r}: {bad[0]!r} is not a finite number")
-        values.append([float(cell) for cell in cells])
+        values.append(row)
     if not values:
         raise ValueError(f"{option}: {os.fspath(path)!r} holds no rows of numbers")
     table = np.asarray(values, np.float64)
@@ -157,12 +158,12 @@ def _cells(line: str) -> list[str]:
     return cells[:-1] if len(cells) > 1 and not cells[-1] else cells
 
 
-def _is_number(cell: str) -> bool:
+def _number(cell: str) -> float | None:
+    """The cell's number, or None when it is not one."""
     try:
-        float(cell)
+        return float(cell)
     except ValueError:
-        return False
-    return True
+        return None
 
 
 def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = None, end_s: float | None = None) -> Modes:
@@ -213,7 +214,8 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
     if flat.size:
         raise ValueError(f"channel(s) {(flat + 1).tolist()} of y are constant or a straight line throughout the window")
     poles, amplitudes, basis, lags = _poles(y / scale, order)
-    noise = np.sqrt(np.mean((np.real(basis @ amplitudes) - y / scale) ** 2, axis=0))  # [n_ch]
+    model = np.real(basis @ amplitudes)  # of y / scale
+    noise = np.sqrt(np.mean((model - y / scale) ** 2, axis=0))  # [n_ch]
     # (f Re w)^2 averages f^2 (|w|^2 + Re w^2) / 2: f = 2 for a pole and its conjugate, 1 for a real pole
     factor = np.where(poles.imag != 0, 2.0, 1.0)[:, None]
     rms = factor * np.sqrt(np.maximum(np.abs(amplitudes) ** 2 * np.mean(np.abs(basis) ** 2, axis=0)[:, None] + np.real(amplitudes**2 * np.mean(basis**2, axis=0)[:, None]), 0.0) / 2)
@@ -236,14 +238,15 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
     if np.any(damping <= 0):
         growing = ", ".join(f"{w / (2 * np.pi):.4g} Hz" for w, z in zip(omega, damping) if z <= 0)
         raise ValueError(f"the mode(s) at {growing} do not decay in the window: it must be a free decay, after the excitation has ended (start_s)")
-    reconstruction = np.real(basis @ amplitudes) * scale
-    return Modes(omega / (2 * np.pi), damping, rms[kept] * scale, float(dt), float(t[0]), float(t[-1]), residual, reconstruction, order, (lags - 1) * float(dt))
+    return Modes(omega / (2 * np.pi), damping, rms[kept] * scale, float(dt), float(t[0]), float(t[-1]), residual, model * scale, order, (lags - 1) * float(dt))
 
 
 def _time(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or not math.isfinite(value):
-        raise ValueError(f"{name} must be a finite time (s); got {value!r}")
-    return float(value)
+    """``value`` as a finite number (checks.number, with no bound), refused as a time."""
+    try:
+        return checks.number(name, value, -math.inf)
+    except ValueError:
+        raise ValueError(f"{name} must be a finite time (s); got {value!r}") from None
 
 
 def _poles(y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
