@@ -53,15 +53,17 @@ def number(name: str, value: Any, low: float = 0.0, *, strict: bool = False, uni
     return float(value)
 
 
-def instance(name: str, value: Any, expected: type, build: str) -> Any:
-    """``value`` when it is an ``expected``; else ``ValueError`` naming ``name``, the expected
-    type, how to get one (``build``, e.g. ``"build one with plant.discretize(...)"``) and what
-    was given (an uncalled function by its name)."""
+def instance(name: str, value: Any, expected: type | tuple[type, ...], build: str) -> Any:
+    """``value`` when it is an ``expected`` (a type, or a tuple of accepted types); else
+    ``ValueError`` naming ``name``, the expected type(s), how to get one (``build``, e.g.
+    ``"build one with plant.discretize(...)"``) and what was given (an uncalled function by
+    its name)."""
     if not isinstance(value, expected):
         what = type(value).__name__
         if callable(value) and not isinstance(value, type) and hasattr(value, "__name__"):
             what = f"the function {value.__name__} itself: call it to build one"
-        raise ValueError(f"{name} must be a {expected.__name__} ({build}); got {what}")
+        names = " or ".join(t.__name__ for t in (expected if isinstance(expected, tuple) else (expected,)))
+        raise ValueError(f"{name} must be a {names} ({build}); got {what}")
     return value
 
 

@@ -76,9 +76,25 @@ class DiscretePlant(NamedTuple):
 METHODS = ("rk4", "zoh")
 
 
+def check_continuous(plant: LinearPlant, name: str = "plant") -> LinearPlant:
+    """``plant`` when it is a continuous-time LinearPlant; else ValueError naming ``name``
+    (a DiscretePlant's ``Ad`` read as ``A`` would give wrong results, not an error)."""
+    return checks.instance(name, plant, LinearPlant, "build one with make_plant(...); a DiscretePlant is already sampled")
+
+
+def check_sampled(plant: DiscretePlant, name: str = "plant") -> DiscretePlant:
+    """``plant`` when it is a sampled DiscretePlant; else ValueError naming ``name``."""
+    return checks.instance(name, plant, DiscretePlant, "build one with plant.discretize(...)")
+
+
+def check_plant(plant: LinearPlant | DiscretePlant, name: str = "plant") -> LinearPlant | DiscretePlant:
+    """``plant`` when it is a LinearPlant or a DiscretePlant; else ValueError naming ``name``."""
+    return checks.instance(name, plant, (LinearPlant, DiscretePlant), "build one with make_plant(...), and sample it with discretize(...) if needed")
+
+
 def n_modes_of(plant: LinearPlant | DiscretePlant) -> int:
     """Number of assumed modes, read from the (static) state dimension."""
-    return plant.C.shape[1] // 2 - 1
+    return check_plant(plant).C.shape[1] // 2 - 1
 
 
 def make_plant(params: beam.BeamParams | None = None, n_modes: int = 2) -> LinearPlant:
@@ -147,7 +163,7 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") ->
       ValueError: naming ``plant`` when it is not a LinearPlant, ``dt`` or ``method`` out of
         range, or a sampled matrix that is not finite.
     """
-    checks.instance("plant", plant, LinearPlant, "build one with make_plant(...); a DiscretePlant is already sampled")
+    check_continuous(plant)
     check_dt(dt)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
@@ -169,7 +185,7 @@ def rk4_amplified_omega(plant: LinearPlant, dt: float) -> float | None:
       plant: a concrete continuous-time plant.
       dt: sample time (s), finite and > 0.
     """
-    checks.instance("plant", plant, LinearPlant, "build one with make_plant(...); a DiscretePlant is already sampled")
+    check_continuous(plant)
     check_dt(dt)
     lam = np.linalg.eigvals(np.asarray(plant.A, dtype=float))
     z = lam * float(dt)

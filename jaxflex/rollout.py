@@ -43,9 +43,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex.analysis.metrics import DIVERGENCE_THRESHOLD
-from jaxflex import checks
 from jaxflex.controllers.base import Controller, check_controller, is_concrete, same_dt
-from jaxflex.plant import DiscretePlant
+from jaxflex.plant import DiscretePlant, check_sampled
 from jaxflex.scenarios import Scenario
 
 
@@ -109,7 +108,7 @@ OUTPUTS = ("trajectory", "metrics")
 def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settling_band: Any, mode_freqs_hz: Any) -> float:
     """Shapes and dtypes of the loop's inputs, and the metrics' options, named when wrong;
     returns ``settling_band`` as a Python float (a constant of the loop)."""
-    checks.instance("plant", plant, DiscretePlant, "build one with plant.discretize(...)")
+    check_sampled(plant)
     n_x = plant.Ad.shape[-1]
     if plant.Ad.shape != (n_x, n_x):
         raise ValueError(f"Ad must be square; got {plant.Ad.shape}")

@@ -16,7 +16,7 @@ from jaxflex.analysis import stability as st
 from jaxflex.controllers import DFSParams, dfs
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
-from jaxflex.scenarios import initial_condition
+from jaxflex.scenarios import initial_condition, paper_scenario
 
 RTOL_DELTA = 1e-9  # |Delta(jw, tau_m)| / |P(jw)|: crossings polished to ~1e-15 relative; det itself ~1e-14
 RTOL_POLY = 1e-9  # P, Q from eigenvalues / transmission zeros against LU determinants (~1e-14 seen)
@@ -339,6 +339,45 @@ def test_validation_errors(plant):
             stability_report.run("/nonexistent-not-written", n_modes=bad)
     with pytest.raises(ValueError, match="n_cheb must be an integer >= 2"):
         st.rightmost_root(plant, PAPER_K, 0.005, 1)
+
+
+def test_each_analysis_refuses_the_other_kind_of_plant(plant):
+    """A sampled plant given to the continuous-time analyses was read as if ``Ad`` were ``A``:
+    critical_delays, crossing_frequencies, characteristic_polynomials, delta and
+    first_destabilising_delay returned numbers (a first destabilising delay of 150 s for the
+    paper's arm at k = 10), the rest an AttributeError. Each names the plant it needs."""
+    dplant = discretize(plant, 1e-3, "zoh")
+    continuous = [
+        lambda p: st.characteristic_polynomials(p, 10.0),
+        lambda p: st.delta(p, 10.0, 0.01, 1j),
+        lambda p: st.crossing_frequencies(p, 10.0),
+        lambda p: st.crossing_frequencies(p, 0.0),
+        lambda p: st.critical_delays(p, 10.0),
+        lambda p: st.first_destabilising_delay(10.0, plant=p),
+        lambda p: st.generator_matrix(p, 10.0, 0.01, 4),
+        lambda p: st.characteristic_roots(p, 10.0, 0.01, 4),
+        lambda p: st.rightmost_root(p, 10.0, 0.01, 4),
+        lambda p: st.rightmost_real_grid(p, [10.0], [0.01], 4),
+        lambda p: st.stability_chart(p, [10.0], [5]),
+    ]
+    sampled = [
+        lambda p: st.sampled_loop_matrix(p, 10.0, 5),
+        lambda p: st.deflated_loop_matrix(p, 10.0, 5, 5),
+        lambda p: st.sampled_eigenvalues(p, 10.0, 5),
+        lambda p: st.spectral_radius(p, 10.0, 5),
+        lambda p: st.sampled_radius_grid(p, [10.0], [5]),
+    ]
+    for call in continuous:
+        with pytest.raises(ValueError, match=r"plant must be a LinearPlant \(build one with make_plant\(...\); a DiscretePlant is already sampled\); got DiscretePlant"):
+            call(dplant)
+        with pytest.raises(ValueError, match=r"plant must be a LinearPlant .*; got the function make_plant itself: call it to build one"):
+            call(make_plant)
+    for call in sampled:
+        with pytest.raises(ValueError, match=r"plant must be a DiscretePlant \(build one with plant.discretize\(...\)\); got LinearPlant"):
+            call(plant)
+    for call in (st.loop_vectors, st.structural_directions, paper_scenario):
+        with pytest.raises(ValueError, match=r"plant must be a LinearPlant or DiscretePlant \(build one with make_plant\(...\), and sample it with discretize\(...\) if needed\); got dict"):
+            call({"A": plant.A})
 
 
 def test_plot_stability_chart():

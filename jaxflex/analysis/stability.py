@@ -74,7 +74,7 @@ from jax.typing import ArrayLike
 from jaxflex import beam, checks
 from jaxflex.controllers.base import check_finite_scalar
 from jaxflex.delay import whole_samples
-from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant, n_modes_of
+from jaxflex.plant import DiscretePlant, LinearPlant, check_continuous, check_plant, check_sampled, discretize, make_plant, n_modes_of
 
 _NULL_RTOL = 1e3  # x n_x eps x largest singular value: rank tolerance for the structural null space
 _ROOT_IMAG_RTOL = 1e-6  # a root v of F is real when |Im v| <= this x |v| (before polishing on 1 + 2k Re G)
@@ -124,7 +124,7 @@ def _check_n_cheb(n_cheb: int) -> int:
 
 def _plant_or_default(plant: LinearPlant | None, n_modes: int) -> LinearPlant:
     beam.check_n_modes(n_modes)
-    return make_plant(n_modes=n_modes) if plant is None else plant
+    return make_plant(n_modes=n_modes) if plant is None else check_continuous(plant)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -134,6 +134,7 @@ def _plant_or_default(plant: LinearPlant | None, n_modes: int) -> LinearPlant:
 def loop_vectors(plant: LinearPlant | DiscretePlant) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """NumPy float64 ``(A, b, c)``: state matrix (``Ad`` for a sampled plant), torque input
     column [n_x] and the measured-angle row ``c = C[0]`` [n_x]."""
+    check_plant(plant)
     if isinstance(plant, DiscretePlant):
         A, B = plant.Ad, plant.Bd
     else:
@@ -226,6 +227,7 @@ def _open_loop_polynomials(plant: LinearPlant) -> tuple[np.ndarray, np.ndarray]:
 
 def characteristic_polynomials(plant: LinearPlant, k: ArrayLike) -> CharacteristicPolynomials:
     """P(s) and Q(s) of ``Delta(s, tau) = P(s) + Q(s) e^{-s tau}`` for the DFS gain k."""
+    check_continuous(plant)
     k = check_gain(k)
     a, N = _open_loop_polynomials(plant)
     return CharacteristicPolynomials(a + k * N, -k * N, a, N, k)
@@ -233,6 +235,7 @@ def characteristic_polynomials(plant: LinearPlant, k: ArrayLike) -> Characterist
 
 def delta(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, s: ArrayLike) -> np.ndarray:
     """``Delta(s, tau) = det(sI - A + k b c (1 - e^{-s tau}))`` evaluated directly (complex s, any shape)."""
+    check_continuous(plant)
     A, b, c = loop_vectors(plant)
     k, tau = check_gain(k), check_delay(tau_s)
     s = np.asarray(s, np.complex128)
@@ -341,6 +344,7 @@ def crossing_frequencies(plant: LinearPlant, k: ArrayLike) -> np.ndarray:
     """All w > 0 (rad/s, ascending) with ``|P(jw)| = |Q(jw)|``: positive real roots of the
     polynomial in ``v = w^2``, polished by ``brentq`` on ``1 + 2 k Re G(jw) = 0``, united with the
     sign changes of a dense logarithmic scan of the same function."""
+    check_continuous(plant)
     k = check_gain(k)
     if k == 0.0:
         return np.zeros((0,))
@@ -400,6 +404,7 @@ def critical_delays(plant: LinearPlant, k: ArrayLike, tau_max_s: ArrayLike = 0.0
       k: DFS gain (N*m/rad), finite.
       tau_max_s: list critical delays up to this (s), > 0.
     """
+    check_continuous(plant)
     k = check_gain(k)
     tau_max = check_finite_scalar("tau_max_s", tau_max_s, positive=True)
     A, b, c = loop_vectors(plant)
@@ -517,7 +522,7 @@ def generator_matrix(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, n_cheb:
     characteristic-root approximations are the same. Traced k and tau are fine (vmap over
     both); ``n_cheb`` (M) is static.
     """
-    return _generator(plant, k, tau_s, _check_n_cheb(n_cheb))
+    return _generator(check_continuous(plant), k, tau_s, _check_n_cheb(n_cheb))
 
 
 def _generator(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, m: int) -> jax.Array:
@@ -547,6 +552,7 @@ def characteristic_roots(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, n_c
     """Approximate characteristic roots (rad/s, complex), structural root(s) deflated, sorted by
     decreasing real part. Only the rightmost few are accurate. Concrete k, tau are checked;
     traced ones are fine (vmap/jit over them with the plant closed over)."""
+    check_continuous(plant)
     if not isinstance(k, jax.core.Tracer):
         check_gain(k)
     if not isinstance(tau_s, jax.core.Tracer):
@@ -609,7 +615,7 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
       [n_x + n_hist, n_x + n_hist] matrix.
     """
     n_hist = _check_sampled_args(k, delay_steps, n_hist)
-    return _loop_matrix(plant, k, delay_steps, n_hist)
+    return _loop_matrix(check_sampled(plant), k, delay_steps, n_hist)
 
 
 def _loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int) -> jax.Array:
@@ -645,7 +651,7 @@ def deflated_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayL
     structural direction. ``delay_steps`` may be fractional and traced (linear interpolation;
     see ``_loop_matrix``); the plant must be concrete.
     """
-    return _deflated(plant, k, delay_steps, jnp.asarray(structural_directions(plant), plant.Ad.dtype), n_hist)
+    return _deflated(plant, k, delay_steps, jnp.asarray(structural_directions(check_sampled(plant)), plant.Ad.dtype), n_hist)
 
 
 def _deflated(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, v: jax.Array, n_hist: int) -> jax.Array:
@@ -669,6 +675,7 @@ def sampled_eigenvalues(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
     structural direction, by its known eigenvector ``[v, c v, ..., c v]``), by decreasing modulus.
     The plant must be concrete (closed over under jit/vmap); k and the delay may be traced, and
     with ``n_hist`` given the delay may be fractional (see ``sampled_loop_matrix``)."""
+    check_sampled(plant)
     n_hist = _check_sampled_args(k, delay_steps, n_hist)
     dtype = plant.Ad.dtype
     v = jnp.asarray(structural_directions(plant), dtype)
@@ -713,6 +720,7 @@ class StabilityChart(NamedTuple):
 def sampled_radius_grid(plant: DiscretePlant, k_values: ArrayLike, delay_steps: ArrayLike) -> jax.Array:
     """[n_tau, n_k] sampled spectral radii: one jitted ``vmap(vmap(...))`` over delays and gains
     (every delay padded to the longest history, so there is one compilation)."""
+    check_sampled(plant)
     delay_steps = np.asarray(delay_steps)
     for d in delay_steps.tolist():
         _check_delay_steps(d)
@@ -733,6 +741,7 @@ def _radius_grid(plant, k_values, delay_steps, v, n_hist):
 
 def rightmost_real_grid(plant: LinearPlant, k_values: ArrayLike, tau_s: ArrayLike, n_cheb: int = DEFAULT_N_CHEB) -> jax.Array:
     """[n_tau, n_k] real part of the rightmost non-structural root, batched with ``vmap``."""
+    check_continuous(plant)
     m = _check_n_cheb(n_cheb)
     for kv in np.asarray(k_values).tolist():
         check_gain(kv)
