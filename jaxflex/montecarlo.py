@@ -36,9 +36,9 @@ from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
-from jaxflex.plant import METHODS, check_rk4_step, discretize, make_plant
+from jaxflex.plant import METHODS, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
-from jaxflex.scenarios import Scenario, ScenarioSpec, perturbed_params, sample_scenarios, scenario_plant
+from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, perturbed_params, sample_scenarios, scenario_plant
 
 CONTROLLERS = NAMES
 META = "montecarlo.json"
@@ -125,9 +125,7 @@ class MCConfig:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", check_temperature(self.fuzzy_temperature, "fuzzy_temperature"))
         object.__setattr__(self, "beam", beam.plain_params(self.beam))
-        plant = make_plant(self.beam, self.n_modes)  # refuses an arm not finite in the dtype of the run
-        if self.method == "rk4":
-            check_rk4_step(plant, self.scenarios.dt)
+        check_plants(self.scenarios, self.beam, self.n_modes, self.method)  # refuses an arm not finite in the dtype of the run, or RK4 growing one
 
     @property
     def run_chunk(self) -> int:

@@ -10,6 +10,7 @@ member), and :func:`scenario_plant` builds each member's perturbed plant.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from typing import Any, Mapping, NamedTuple
 
@@ -20,7 +21,7 @@ from jax.typing import ArrayLike
 
 from jaxflex import beam, checks, fileio
 from jaxflex.controllers.base import is_concrete
-from jaxflex.plant import DiscretePlant, LinearPlant, discretize, make_plant, n_modes_of
+from jaxflex.plant import DiscretePlant, LinearPlant, check_rk4_step, discretize, make_plant, n_modes_of
 
 READINGS = ("printed", "block")
 
@@ -73,6 +74,38 @@ def perturbed_params(params: beam.BeamParams, perturbation: PlantPerturbation | 
 def scenario_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str, scenario: Scenario) -> DiscretePlant:
     """The sampled plant a scenario runs on (vmap this together with the rollout)."""
     return discretize(make_plant(perturbed_params(params, scenario.plant), n_modes), dt, method)
+
+
+def check_plants(spec: "ScenarioSpec", params: beam.BeamParams, n_modes: int, method: str) -> None:
+    """Build the nominal plant and the plants at each corner of ``spec``'s uncertainty box,
+    refusing the first that ``make_plant`` refuses (not finite in the run's dtype) or, for
+    ``method = "rk4"``, whose RK4 step at ``spec.dt`` amplifies a mode (``check_rk4_step``).
+
+    Each natural frequency rises with E and falls with rho, I_H and the payload, so the
+    fastest mode of any drawn plant is at a corner. Unchecked, RK4's growth of a stiffer drawn
+    plant was counted as the controller diverging: 31 % of the scenarios at dt = 12 ms with
+    ``youngs_modulus_rel = 0.5`` and k = 0, where ZOH gives none.
+
+    Raises:
+      ValueError: naming the corner (each factor) before the plant's own message.
+    """
+    ranges = [
+        (1 - spec.youngs_modulus_rel, 1 + spec.youngs_modulus_rel),
+        (1 - spec.density_rel, 1 + spec.density_rel),
+        (1 - spec.hub_inertia_rel, 1 + spec.hub_inertia_rel),
+        (0.0, spec.payload_max_kg),
+    ]
+    corners = [None] + [PlantPerturbation(*c) for c in itertools.product(*(sorted(set(r)) for r in ranges)) if c != (1.0, 1.0, 1.0, 0.0)]
+    for corner in corners:
+        try:
+            plant = make_plant(perturbed_params(params, corner), n_modes)
+            if method == "rk4":
+                check_rk4_step(plant, spec.dt)
+        except ValueError as err:
+            if corner is None:
+                raise
+            where = f"E x{corner.youngs_modulus_scale:g}, rho x{corner.density_scale:g}, I_H x{corner.hub_inertia_scale:g}, payload +{corner.payload_mass_kg:g} kg"
+            raise ValueError(f"the scenarios' plant uncertainty reaches an arm ({where}) that cannot be run: {err}") from err
 
 
 def horizon_steps(horizon_s: float, dt: float) -> int:

@@ -2,12 +2,17 @@
 (large batches; the tolerances are a few standard errors)."""
 
 import dataclasses
+import itertools
 
 import jax
 import numpy as np
 import pytest
 
-from jaxflex.scenarios import ScenarioSpec, _paper_x0, sample_scenarios
+from jaxflex.beam import BeamParams
+from jaxflex.montecarlo import MCConfig
+from jaxflex.plant import check_rk4_step, make_plant
+from jaxflex.scenarios import PlantPerturbation, ScenarioSpec, _paper_x0, check_plants, perturbed_params, sample_scenarios
+from tuning.tuner import TuneConfig
 
 N = 4000
 REL = 4 / np.sqrt(N)  # a few relative standard errors of a mean or a standard deviation
@@ -99,3 +104,50 @@ def test_an_impulse_that_outlasts_the_horizon_is_refused():
     spec = ScenarioSpec(horizon_s=0.05, impulse_max_n=1.0, impulse_duration_s=0.025, include_paper=False)
     force = np.asarray(sample_scenarios(spec, jax.random.key(0), 64).force[:, :, 0])
     assert np.all(np.sum(force != 0, axis=1) == 25)  # every pulse whole
+
+
+RK4_SPEC = ScenarioSpec(horizon_s=1.0, dt=0.012, youngs_modulus_rel=0.5)  # nominal fastest mode: omega dt = 2.75, E x1.5: 3.37
+
+
+def test_configs_refuse_scenarios_whose_stiffest_arm_rk4_grows():
+    """The nominal arm passes RK4's check at dt = 12 ms, the arm with E x1.5 does not. Before
+    the corners were checked, a Monte Carlo with k = 0 (the open loop) counted 31 % of its
+    scenarios as diverged under RK4 and none under ZOH."""
+    check_rk4_step(make_plant(), RK4_SPEC.dt)
+    with pytest.raises(ValueError, match="method = 'rk4' with dt = 0.012 s is unstable"):
+        check_rk4_step(make_plant(BeamParams(youngs_modulus_pa=1.5 * BeamParams().youngs_modulus_pa)), RK4_SPEC.dt)
+    match = r"the scenarios' plant uncertainty reaches an arm \(E x1.5, rho x1, I_H x1, payload \+0 kg\) that cannot be run: method = 'rk4' with dt = 0.012 s .* omega dt = 3.37"
+    with pytest.raises(ValueError, match=match):
+        check_plants(RK4_SPEC, BeamParams(), 2, "rk4")
+    with pytest.raises(ValueError, match=match):
+        MCConfig(controller="dfs", scenarios=RK4_SPEC, method="rk4")
+    with pytest.raises(ValueError, match=match):
+        TuneConfig(controller="dfs", scenarios=RK4_SPEC, method="rk4")
+    check_plants(RK4_SPEC, BeamParams(), 2, "zoh")
+    check_plants(dataclasses.replace(RK4_SPEC, youngs_modulus_rel=0.03), BeamParams(), 2, "rk4")  # omega dt = 2.79
+    with pytest.raises(ValueError, match=r"\(E x1, rho x0.7, I_H x1, payload \+0 kg\)"):
+        check_plants(dataclasses.replace(RK4_SPEC, youngs_modulus_rel=0.0, density_rel=0.3), BeamParams(), 2, "rk4")
+
+
+def test_an_overflow_at_a_corner_is_refused():
+    """Under vmap the drawn arms are traced, so make_plant cannot check them; their corners are
+    checked in the run's dtype (float64 here, as float32 in a default run)."""
+    big = BeamParams(youngs_modulus_pa=1.5e308)  # x1.5 is above float64's 1.8e308
+    MCConfig(controller="dfs", method="zoh", beam=big)
+    with pytest.raises(ValueError, match=r"\(E x1.5, .*youngs_modulus_pa must be finite; got inf"):
+        MCConfig(controller="dfs", method="zoh", beam=big, scenarios=ScenarioSpec(youngs_modulus_rel=0.5))
+
+
+def test_the_fastest_mode_of_any_drawn_arm_is_at_a_corner():
+    """What check_plants relies on: no arm inside the uncertainty box has a faster mode than
+    the box's corners (E x[0.6, 1.4], rho x[0.7, 1.3], I_H x[0.5, 1.5], payload [0, 0.2] kg)."""
+    box = np.array([(0.6, 1.4), (0.7, 1.3), (0.5, 1.5), (0.0, 0.2)])
+
+    def fastest(scales):
+        arm = perturbed_params(BeamParams(), PlantPerturbation(*map(np.float64, scales)))
+        return np.max(np.abs(np.linalg.eigvals(np.asarray(make_plant(arm).A))))
+
+    corners = max(fastest(c) for c in itertools.product(*box))
+    inside = [fastest(s) for s in np.random.default_rng(0).uniform(box[:, 0], box[:, 1], (64, 4))]
+    assert max(inside) < corners
+    assert max(inside) > 0.8 * corners  # the draws reach near it, so the bound is not vacuous

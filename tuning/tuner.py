@@ -30,9 +30,9 @@ from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
-from jaxflex.plant import METHODS, check_rk4_step, discretize, make_plant
+from jaxflex.plant import METHODS, discretize, make_plant
 from jaxflex.rollout import rollout
-from jaxflex.scenarios import Scenario, ScenarioSpec, sample_scenarios, scenario_plant
+from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, sample_scenarios, scenario_plant
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
 from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_controller
@@ -119,9 +119,7 @@ class TuneConfig:
         if unknown:
             raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed)}")
         param_values(self.initial, "initial")
-        plant = make_plant(self.beam, self.n_modes)  # refuses an arm not finite in the dtype of the run
-        if self.method == "rk4":
-            check_rk4_step(plant, self.scenarios.dt)
+        check_plants(self.scenarios, self.beam, self.n_modes, self.method)  # refuses an arm not finite in the dtype of the run, or RK4 growing one
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
