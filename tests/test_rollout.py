@@ -2,6 +2,7 @@
 against central differences, and input validation."""
 
 import re
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -172,6 +173,89 @@ def test_gradient_wrt_plant_parameter(plant2):
     h = 1e-4 * E
     fd = (float(vg(E + h)[0]) - float(vg(E - h)[0])) / (2 * h)
     np.testing.assert_allclose(g, fd, rtol=RTOL_FD)
+
+
+# Short runs for the gradients of the PD and combined controllers and of the running metrics:
+# 80 samples of the paper scenario with a tip-force pulse, so the hub moves at once.
+FD_STEPS = 80
+
+
+def _pulse_scenario(plant):
+    sc = paper_scenario(plant, horizon_s=FD_STEPS * 1e-3)
+    return sc._replace(force=sc.force.at[3:8, 0].set(0.2))
+
+
+def _check_against_central_differences(vg, params, fields, rtol=RTOL_FD, h_rel=1e-5):
+    """``vg(params) -> (loss, grads)`` jitted once: each field's gradient against a central
+    difference of the loss from the same program (float64; truncation ~(h_rel)^2 ~ 1e-10 and
+    round-off ~eps / h_rel ~ 1e-11, relative, far below ``rtol``)."""
+    grads = vg(params)[1]
+    for name in fields:
+        v = float(getattr(params, name))
+        h = h_rel * abs(v)
+        up, down = (float(vg(params._replace(**{name: v + d}))[0]) for d in (h, -h))
+        g = float(getattr(grads, name))
+        assert g != 0 and np.isfinite(g), name
+        np.testing.assert_allclose(g, (up - down) / (2 * h), rtol=rtol, err_msg=name)
+
+
+def test_pd_gradient_wrt_gains_matches_central_difference(plant2):
+    sc = _pulse_scenario(plant2)
+
+    def loss(p):
+        traj = jf.rollout(plant2, pd(), p, sc)
+        return (jnp.sum(traj.z[:, 1] ** 2) + jnp.sum(traj.z[:, 0] ** 2)) * 1e-3
+
+    _check_against_central_differences(jax.jit(jax.value_and_grad(loss)), PDParams(1.0, 0.1), ("kp", "kd"))
+
+
+def test_combined_controller_gradient_matches_central_difference(plant2):
+    """DFS (linear read, fractional tau) + PD through ``combine``: the gradient reaches each
+    gain of both parts of the parameter pair. (PD as the second part: its program compiles in
+    a fraction of the fuzzy controller's time; the fuzzy gains' own gradients are checked
+    above and in test_fuzzy.py.)"""
+    sc = _pulse_scenario(plant2)
+    ctrl = combine(dfs(1e-3, 16, "linear"), pd())
+
+    class Gains(NamedTuple):
+        k: Any
+        tau_s: Any
+        kp: Any
+        kd: Any
+
+    def loss(g):
+        traj = jf.rollout(plant2, ctrl, (DFSParams(g.k, g.tau_s), PDParams(g.kp, g.kd)), sc)
+        return (jnp.sum(traj.z[:, 1] ** 2) + jnp.sum(traj.z[:, 0] ** 2)) * 1e-3
+
+    gains = Gains(*(jnp.asarray(v) for v in (55.0, 0.0053, 1.0, 0.1)))
+    _check_against_central_differences(jax.jit(jax.value_and_grad(loss)), gains, Gains._fields)
+
+
+def test_running_metrics_gradients_match_central_differences(plant2):
+    """Every differentiable field of ``RunMetrics`` (output="metrics", the tuner's path) in k and
+    a fractional tau (linear read): one forward-mode Jacobian, with the metrics themselves as its
+    aux (one compilation), against central differences of the metrics. The peak and the
+    settling time are left out: piecewise (here the peak is the initial deflection, and the
+    settling time is piecewise constant)."""
+    sc = _pulse_scenario(plant2)
+    ctrl = dfs(1e-3, 16, "linear")
+    fields = ("tip_ise", "tip_iae", "hub_ise", "control_effort", "final_hub_angle_rad")
+
+    def metrics(p):
+        m = jf.rollout(plant2, ctrl, p, sc, output="metrics", mode_freqs_hz=[13.3, 36.5])
+        out = jnp.concatenate([jnp.stack([getattr(m, f) for f in fields]), m.modal_energy])
+        return out, out
+
+    jac_and_values = jax.jit(jax.jacfwd(metrics, has_aux=True))
+    base = DFSParams(jnp.asarray(55.0), jnp.asarray(0.0053))
+    jac = jac_and_values(base)[0]
+    for name in DFSParams._fields:
+        x = float(getattr(base, name))
+        h = 1e-5 * x
+        up, down = (np.asarray(jac_and_values(base._replace(**{name: jnp.asarray(x + d)}))[1]) for d in (h, -h))
+        g = np.asarray(getattr(jac, name))
+        assert np.all(g != 0) and np.all(np.isfinite(g)), name
+        np.testing.assert_allclose(g, (up - down) / (2 * h), rtol=RTOL_FD, err_msg=name)
 
 
 def test_open_loop_conserves_energy_without_damping():
