@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import signal
 import sys
+import threading
 import time
 from typing import Any, Sequence
 
@@ -149,15 +151,28 @@ def _resume_marker(command: str) -> str:
     return META
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's time limit, ``kill``, ``docker stop``), raised where the run is
+    so that it ends as after Ctrl-C: temporary files removed, the resume hint printed."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
+    raise _Terminated
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``jaxflex`` console script.
 
     Returns 0 on success, 2 for bad input (one line on stderr naming what is wrong, no
-    traceback) and 130 when interrupted (Ctrl-C).
+    traceback), 130 when interrupted (Ctrl-C) and 143 when terminated (SIGTERM, handled as
+    Ctrl-C is while ``main`` runs in the main thread).
     """
     args = _parser().parse_args(argv)
     out = getattr(args, "out", None)
     new_out = bool(out) and not os.path.lexists(out)
+    handles_sigterm = threading.current_thread() is threading.main_thread()  # signal.signal works there only
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if handles_sigterm else None
     try:
         return _run(args)
     except (ValueError, OSError) as err:
@@ -171,27 +186,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         hint = f"; lower the batch ({batch}) or the horizon (horizon_s)" if batch else ""
         print(f"jaxflex {args.command}: error: out of memory ({first}){hint}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
         hint = _RESUME_HINT.get(args.command, "")
         if hint and not os.path.exists(os.path.join(out, _resume_marker(args.command))):
             hint = "; nothing was written to resume from: run it again without --resume"
-        print(f"jaxflex {args.command}: interrupted{hint}", file=sys.stderr)
-        return 130
+        terminated = isinstance(err, _Terminated)
+        print(f"jaxflex {args.command}: {'terminated (SIGTERM)' if terminated else 'interrupted'}{hint}", file=sys.stderr)
+        return 143 if terminated else 130
     finally:
+        if handles_sigterm:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
         if new_out:
             _remove_if_empty(out)
 
 
 def console() -> None:
     """The ``jaxflex`` console script: ``main()``'s status as the exit status. After Ctrl-C
-    the process ends at once, once its message is out: XLA may still be compiling on another
+    or SIGTERM the process ends at once, once its message is out: XLA may still be compiling on another
     thread, and the interpreter's shutdown around it crashed (a segmentation fault in 3 of 7
     interrupts during a tune's compilation). Every file was already written or left as it was."""
     code = main()
-    if code == 130:
+    if code in (130, 143):
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(130)
+        os._exit(code)
     sys.exit(code)
 
 

@@ -334,6 +334,36 @@ def test_cli_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatc
     assert not (tmp_path / "u").exists()
 
 
+def test_cli_sigterm_ends_a_run_as_ctrl_c_does(tmp_path, capsys, monkeypatch):
+    """SIGTERM (a scheduler's time limit, kill) ends a run as Ctrl-C does: staging files
+    removed, the resume hint, status 143; it killed the process at once, leaving a .tmp-*
+    folder and the progress bar's line unfinished, with no word on resuming."""
+    import signal
+    import time
+
+    import tuning.run
+
+    def terminated(config, out, **kwargs):
+        with fileio.replace_outputs(out, ["tuned.json"]) as stage:
+            fileio.write_text(os.path.join(out, "checkpoint.npz"), "")
+            fileio.write_text(os.path.join(stage, "tuned.json"), "{}")
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(2)  # the handler raises here
+        raise AssertionError("SIGTERM did not end the run")
+
+    monkeypatch.setattr(tuning.run, "run_tune", terminated)
+    ignored = []
+    before = signal.signal(signal.SIGTERM, lambda *args: ignored.append(args))  # stands in for the default, which ends pytest
+    try:
+        assert cli.main(["tune", "--out", str(tmp_path / "t"), "--no-progress"]) == 143
+        assert signal.getsignal(signal.SIGTERM) is not cli._on_sigterm  # restored
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert not ignored
+    assert "jaxflex tune: terminated (SIGTERM); --resume continues from the last checkpoint" in capsys.readouterr().err
+    assert sorted(os.listdir(tmp_path / "t")) == ["checkpoint.npz"]  # no staging folder left
+
+
 def test_console_script_ends_at_once_after_an_interrupt(monkeypatch):
     """The installed `jaxflex` ends an interrupted run with os._exit(130), skipping the
     interpreter's shutdown (which crashed while XLA was still compiling); other statuses
@@ -345,12 +375,12 @@ def test_console_script_ends_at_once_after_an_interrupt(monkeypatch):
         raise SystemExit(code)
 
     monkeypatch.setattr(cli.os, "_exit", fake_exit)
-    for status in (130, 2, 0):
+    for status in (130, 143, 2, 0):
         monkeypatch.setattr(cli, "main", lambda status=status: status)
         with pytest.raises(SystemExit) as info:
             cli.console()
         assert info.value.code == status
-    assert ended == [("os._exit", 130)]
+    assert ended == [("os._exit", 130), ("os._exit", 143)]
     scripts = fileio.read_toml(ROOT / "pyproject.toml")["project"]["scripts"]
     assert scripts == {"jaxflex": "jaxflex.cli:console"}
 
