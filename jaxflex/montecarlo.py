@@ -303,16 +303,21 @@ def run_montecarlo(
     runner = _Runner(config)
 
     n_chunks = int(math.ceil(config.n_scenarios / runner.chunk))
+    keeps = [min(runner.chunk, config.n_scenarios - index * runner.chunk) for index in range(n_chunks)]
+    stored = [os.path.exists(_chunk_path(out_dir, index)) for index in range(n_chunks)]
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=config.n_scenarios, desc=f"montecarlo {config.controller}", unit="scenario")
+        if resume:
+            print(f"montecarlo: resuming: {sum(stored)} of {n_chunks} chunks already in {chunks_dir}", file=sys.stderr, flush=True)
+        # the stored chunks count from the start, so that the bar's rate and time left are those of the chunks run
+        bar = tqdm(total=config.n_scenarios, initial=sum(k for k, s in zip(keeps, stored) if s), desc=f"montecarlo {config.controller}", unit="scenario")
     columns: dict[str, list[np.ndarray]] = {}
     try:
         for index in range(n_chunks):
             path = _chunk_path(out_dir, index)
-            if os.path.exists(path):
+            if stored[index]:
                 rows = _load_chunk(path, runner.chunk, config.n_modes)
             else:
                 rows = runner.run_chunk(index)
@@ -326,10 +331,10 @@ def run_montecarlo(
                         np.savez(f, **rows)
 
                 fileio.atomic_write(path, write)
-            keep = min(runner.chunk, config.n_scenarios - index * runner.chunk)
+            keep = keeps[index]
             for k, v in rows.items():
                 columns.setdefault(k, []).append(v[:keep])
-            if bar is not None:
+            if bar is not None and not stored[index]:
                 bar.update(keep)
             if on_chunk is not None:
                 on_chunk(index)

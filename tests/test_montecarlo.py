@@ -469,3 +469,32 @@ def test_an_arm_that_overflows_the_run_dtype_is_refused_with_the_config():
         with pytest.raises(ValueError, match=r"BeamParams.youngs_modulus_pa must be in \[1.175e-38, 3.403e\+38\] to be simulated in float32"):
             MCConfig(beam=BeamParams(youngs_modulus_pa=1e39), method="zoh")
     MCConfig(beam=BeamParams(youngs_modulus_pa=1e39), method="zoh")  # float64 holds it
+
+
+def test_resume_says_so_and_its_bar_starts_at_the_stored_chunks(tmp_path, monkeypatch, capsys):
+    """A resumed run says how many chunks it found, and its progress bar starts at them: it
+    said nothing, and the bar ran up from 0 through the stored chunks at a rate (and time
+    left) that no simulated chunk had."""
+
+    class Runner:  # stands in for the simulation: the bookkeeping is what is tested
+        def __init__(self, config):
+            self.config, self.chunk, self.n_devices = config, config.run_chunk, 1
+
+        def run_chunk(self, index):
+            return {name: np.full(self.chunk, 0.0 if name == "diverged" else index + 1.0) for name in [*montecarlo.metric_names(self.config.n_modes), "diverged"]}
+
+    monkeypatch.setattr(montecarlo, "_Runner", Runner)
+    config = MCConfig(n_scenarios=45, chunk=10, scenarios=SPEC)
+
+    def interrupt(index):
+        if index == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_montecarlo(config, tmp_path, progress=False, figures=False, on_chunk=interrupt)
+    capsys.readouterr()
+    summary = run_montecarlo(config, tmp_path, resume=True, progress=True, figures=False)
+    err = capsys.readouterr().err
+    assert f"montecarlo: resuming: 3 of 5 chunks already in {tmp_path / 'chunks'}" in err
+    assert "30/45" in err and "10/45" not in err, err
+    assert summary["n_scenarios"] == 45 and summary["metrics"]["tip_ise"]["max"] == 5.0

@@ -708,3 +708,24 @@ def test_an_arm_that_overflows_the_run_dtype_is_refused_with_the_config():
     with jax.enable_x64(False):
         with pytest.raises(ValueError, match=r"BeamParams.youngs_modulus_pa must be in \[1.175e-38, 3.403e\+38\] to be simulated in float32"):
             TuneConfig(beam=jf.BeamParams(youngs_modulus_pa=1e39), method="zoh")
+
+
+def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys):
+    """A resumed run says so, with the step it goes on from (it said nothing until its
+    progress bar, after the compile, opened part-way)."""
+    import tuning.tuner
+
+    config = TuneConfig(steps=40)
+    meta = json.dumps({"fingerprint": config.fingerprint(), "step": 25}).encode()
+    np.savez(tmp_path / CHECKPOINT, meta=np.frombuffer(meta, dtype=np.uint8))
+
+    class Sampled(Exception):
+        pass
+
+    def problem(*args):
+        raise Sampled  # the message comes before the sampling and compiling
+
+    monkeypatch.setattr(tuning.tuner, "Problem", problem)
+    with pytest.raises(Sampled):
+        tune(config, tmp_path, resume=True, progress=True)
+    assert f"tune: resuming from {tmp_path / CHECKPOINT}, after 25 of 40 updates" in capsys.readouterr().err

@@ -338,6 +338,8 @@ def tune(
         on_start()
     os.makedirs(out_dir, exist_ok=True)
     if progress:
+        if resume:
+            print(f"tune: resuming from {ckpt_path}, after {meta['step']} of {config.steps} updates", file=sys.stderr, flush=True)
         print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios, compiling", file=sys.stderr, flush=True)
     problem = Problem(config, optimizer)
     names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
