@@ -21,7 +21,7 @@ from jax.typing import ArrayLike
 
 from jaxflex import beam, checks, fileio
 from jaxflex.controllers.base import is_concrete
-from jaxflex.plant import DiscretePlant, LinearPlant, check_rk4_step, discretize, make_plant, n_modes_of
+from jaxflex.plant import METHODS, DiscretePlant, LinearPlant, check_rk4_step, discretize, make_plant, n_modes_of
 
 READINGS = ("printed", "block")
 
@@ -87,8 +87,12 @@ def check_plants(spec: "ScenarioSpec", params: beam.BeamParams, n_modes: int, me
     ``youngs_modulus_rel = 0.5`` and k = 0, where ZOH gives none.
 
     Raises:
-      ValueError: naming the corner (each factor) before the plant's own message.
+      ValueError: naming ``spec`` or ``method`` when not a ScenarioSpec or one of ``METHODS``;
+        naming the corner (each factor) before the plant's own message.
     """
+    checks.instance("spec", spec, ScenarioSpec, "build one with ScenarioSpec(...)")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
     ranges = [
         (1 - spec.youngs_modulus_rel, 1 + spec.youngs_modulus_rel),
         (1 - spec.density_rel, 1 + spec.density_rel),

@@ -129,6 +129,13 @@ def test_configs_refuse_scenarios_whose_stiffest_arm_rk4_grows():
         check_plants(dataclasses.replace(RK4_SPEC, youngs_modulus_rel=0.0, density_rel=0.3), BeamParams(), 2, "rk4")
 
 
+def test_check_plants_refuses_what_is_not_a_spec_or_a_method():
+    with pytest.raises(ValueError, match=r"spec must be a ScenarioSpec \(build one with ScenarioSpec\(...\)\); got dict"):
+        check_plants({"dt": 1e-3}, BeamParams(), 2, "rk4")
+    with pytest.raises(ValueError, match=r"method must be one of \('rk4', 'zoh'\); got 'euler'"):
+        check_plants(RK4_SPEC, BeamParams(), 2, "euler")
+
+
 def test_an_overflow_at_a_corner_is_refused():
     """Under vmap the drawn arms are traced, so make_plant cannot check them; their corners are
     checked in the run's dtype (float64 here, as float32 in a default run)."""
