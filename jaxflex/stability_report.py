@@ -1,7 +1,7 @@
 """``jaxflex stability``: the DFS loop's stability at one operating point and over a (k, tau) grid.
 
 ``run(out_dir, k, tau_s, n_modes)`` writes ``stability_chart.png`` and, last,
-``stability.json`` (both atomically) and returns the JSON content as a dict. The analysis
+``stability.json`` (together: an interrupted run leaves an earlier run's pair as it was) and returns the JSON content as a dict. The analysis
 (:mod:`jaxflex.analysis.stability`) runs in float64 whatever the caller's JAX setting
 (a scoped ``jax.enable_x64``): eigenvalues near the unit circle need it.
 """
@@ -136,8 +136,6 @@ def run(
         chart.k, chart.tau_s, chart.spectral_radius, chart.rightmost_real, chart.first_destabilising_delay_s, point=(k, tau),
         title=f"DFS stability, {n_modes}-mode arm, sampled at {dt * 1e3:g} ms ({method})",
     )
-    plotting.save(fig, os.path.join(out_dir, CHART_FILE))
-
     result = {
         "k": k,
         "tau_s": tau,
@@ -186,5 +184,8 @@ def run(
         "jax_version": jax.__version__,
     }
     result = fileio.to_jsonable(result)
-    fileio.write_json(os.path.join(out_dir, JSON_FILE), result)
+    # Both files replace an earlier run's together: an interrupted run leaves the old pair.
+    with fileio.replace_outputs(out_dir, (CHART_FILE, JSON_FILE), last=JSON_FILE) as stage:
+        plotting.save(fig, os.path.join(stage, CHART_FILE))
+        fileio.write_json(os.path.join(stage, JSON_FILE), result)
     return result

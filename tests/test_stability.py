@@ -413,6 +413,21 @@ def test_report_writes_chart_and_json(tmp_path):
     assert result["excluded_structural"]["multiplicity"] == 1
 
 
+def test_an_interrupted_report_leaves_the_earlier_pair_of_files(tmp_path, monkeypatch):
+    """The chart and the JSON replace an earlier run's together: Ctrl-C while the JSON is
+    written leaves the earlier chart too (it was replaced first, beside the earlier JSON)."""
+    stability_report.run(tmp_path, k=20.0, n_k=2, tau_max_s=0.006, n_cheb=8)
+    before = {name: (tmp_path / name).read_bytes() for name in ("stability_chart.png", "stability.json")}
+
+    def interrupted(path, data):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stability_report.fileio, "write_json", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        stability_report.run(tmp_path, k=80.0, n_k=2, tau_max_s=0.006, n_cheb=8)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
 def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
     """`jaxflex stability --tau 1` once ran out of memory after 40 s (8 s of delay samples per
     chart matrix); now it is refused at once, naming the range and the largest tau."""
