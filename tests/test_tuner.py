@@ -710,13 +710,22 @@ def test_an_arm_that_overflows_the_run_dtype_is_refused_with_the_config():
             TuneConfig(beam=jf.BeamParams(youngs_modulus_pa=1e39), method="zoh")
 
 
-def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize(
+    "state, said",
+    [
+        ({"step": 25}, "tune: resuming from {ckpt}, after 25 of 40 updates"),
+        ({"step": 40, "history": [{"step": 40}]}, "tune: the run in {out} has finished all 40 updates; writing its results again (--steps above 40 goes on)"),
+        ({"step": 30, "history": [{"step": 30}], "stopped_early": True}, "tune: the run in {out} stopped early after 30 updates; writing its results again"),
+    ],
+)
+def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys, state, said):
     """A resumed run says so, with the step it goes on from (it said nothing until its
-    progress bar, after the compile, opened part-way)."""
+    progress bar, after the compile, opened part-way); a finished or early-stopped one says
+    that it only writes its results again (it said "after 40 of 40 updates")."""
     import tuning.tuner
 
     config = TuneConfig(steps=40)
-    meta = json.dumps({"fingerprint": config.fingerprint(), "step": 25}).encode()
+    meta = json.dumps({"fingerprint": config.fingerprint(), **state}).encode()
     np.savez(tmp_path / CHECKPOINT, meta=np.frombuffer(meta, dtype=np.uint8))
 
     class Sampled(Exception):
@@ -728,4 +737,4 @@ def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(tuning.tuner, "Problem", problem)
     with pytest.raises(Sampled):
         tune(config, tmp_path, resume=True, progress=True)
-    assert f"tune: resuming from {tmp_path / CHECKPOINT}, after 25 of 40 updates" in capsys.readouterr().err
+    assert said.format(ckpt=tmp_path / CHECKPOINT, out=tmp_path) in capsys.readouterr().err

@@ -272,6 +272,17 @@ def _load_checkpoint(path: str, template: tuple[Any, Any, Any] | None = None) ->
     return state
 
 
+def _resume_line(out_dir: str, meta: dict[str, Any], steps: int) -> str:
+    """Where a resumed run goes on from, or that it has nothing left to do and only writes
+    its results again."""
+    history = meta.get("history") or [{}]
+    if meta.get("stopped_early"):
+        return f"the run in {out_dir} stopped early after {meta['step']} updates; writing its results again"
+    if meta["step"] == steps and history[-1].get("step") == steps:
+        return f"the run in {out_dir} has finished all {steps} updates; writing its results again (--steps above {steps} goes on)"
+    return f"resuming from {os.path.join(out_dir, CHECKPOINT)}, after {meta['step']} of {steps} updates"
+
+
 def _history_csv(history: list[dict[str, Any]], names: list[str]) -> str:
     cols = ["step", "loss", "objective", "penalty", "val_objective", "grad_norm"] + names
     buf = io.StringIO()
@@ -339,7 +350,7 @@ def tune(
     os.makedirs(out_dir, exist_ok=True)
     if progress:
         if resume:
-            print(f"tune: resuming from {ckpt_path}, after {meta['step']} of {config.steps} updates", file=sys.stderr, flush=True)
+            print(f"tune: {_resume_line(out_dir, meta, config.steps)}", file=sys.stderr, flush=True)
         print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios, compiling", file=sys.stderr, flush=True)
     problem = Problem(config, optimizer)
     names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
