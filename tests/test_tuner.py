@@ -180,6 +180,64 @@ def test_tuner_objective_gradient_matches_fd():
     assert float(aux["penalty"]) > 0  # the penalty is active here
 
 
+# The objective's other controllers and delay reads, each through the tuner's raw parameters
+# (the test above covers DFS with the linear read and an active stability penalty). The faithful
+# fuzzy controller (the tuner's default temperature; the smooth mode's gradients are checked in
+# test_fuzzy.py, and its tuner program compiles ~3x slower) and fractional delays, away from the
+# kinks of the buffer reads. One program per case (its value gives the differences).
+H_RAW = 1e-5  # central-difference step in the raw (log, logit) coordinates, i.e. relative
+# Error of the difference, relative to the gradient: truncation ~h^2 L''' / (6 L') < 1e-10
+# (measured: 2e-7 at h = 1e-3, falling as h^2), round-off ~eps |L| / (h |dL|) ~ 2e-9 for the
+# smallest component here (log_k1, |dL| ~ 0.02 against L ~ 2); measured at most 3.4e-9.
+RTOL_FD_RAW = 1e-6
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        dict(controller="fuzzy", reduction="cvar"),
+        dict(controller="dfs+fuzzy", delay="cubic", reduction="mean"),
+        dict(controller="dfs", delay="pade", reduction="worst"),
+    ],
+    ids=["fuzzy", "dfs+fuzzy-cubic", "dfs-pade"],
+)
+def test_tuner_objective_gradient_matches_fd_for_other_controllers_and_delays(options):
+    """The gradient the optax loop takes (``Problem._objective`` w.r.t. every leaf of the raw
+    parameters) against central differences of the same function, float64: the fuzzy gains
+    alone (log_k1..3), DFS and fuzzy combined with the cubic buffer read (the pair of raw
+    trees; tau_z through the Lagrange weights), and DFS with the Pade delay (tau_z through the
+    filter sampled in ``init``). Each case also takes another batch reduction (CVaR, mean, smooth
+    worst case) on all four terms. tau = 4.3 ms, 4.3 samples: the differences stay inside one
+    sample interval (the cubic read has a kink at whole samples); the stability penalty is off
+    (default min_decay_rate), so tau_z's gradient is that of the rollout alone. The faithful
+    fuzzy surface has kinks too: at h = 1e-4 a difference already crosses one (dfs+fuzzy:
+    log_k2 1.4e-4 off), at H_RAW none does along these runs."""
+    options = dict(options)
+    objective = ObjectiveSpec(tip_ise=1.0, hub_ise=0.3, effort=0.1, vibration=0.5, reduction=options.pop("reduction"), cvar_level=0.7)
+    initial = {} if options["controller"] == "fuzzy" else {"tau_s": 0.0043}
+    problem = Problem(TuneConfig(**options, **SMALL, objective=objective, initial=initial))
+    raw = problem.initial_raw
+    vg = jax.jit(jax.value_and_grad(lambda r: problem._objective(r, problem.train), has_aux=True))
+    (_, aux), grads = vg(raw)
+    if "penalty" in aux:
+        assert float(aux["penalty"]) == 0.0
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(raw)
+    names, values = [jax.tree_util.keystr(path) for path, _ in leaves], [value for _, value in leaves]
+    assert len(names) == {"fuzzy": 3, "dfs+fuzzy": 5, "dfs": 2}[options["controller"]]
+
+    def loss(i, step):
+        shifted = values[:i] + [values[i] + step] + values[i + 1:]
+        return float(vg(jax.tree.unflatten(treedef, shifted))[0][0])
+
+    mismatches = []
+    for i, (name, g) in enumerate(zip(names, jax.tree.leaves(grads))):
+        g, fd = float(g), (loss(i, H_RAW) - loss(i, -H_RAW)) / (2 * H_RAW)
+        assert g != 0 and np.isfinite(g), name
+        if not abs(g - fd) <= RTOL_FD_RAW * abs(fd):
+            mismatches.append(f"{name}: grad {g!r}, central difference {fd!r} ({(g - fd) / fd:+.1e})")
+    assert not mismatches, mismatches
+
+
 def test_any_optax_optimizer_is_accepted(tmp_path):
     import optax
 
