@@ -9,6 +9,7 @@ import math
 import os
 import shutil
 import tempfile
+import tomllib
 from typing import Any, Callable, Iterable, Iterator, Mapping
 
 
@@ -98,16 +99,12 @@ def write_json(path: str | os.PathLike, data: Any) -> None:
 
 
 def read_toml(path: str | os.PathLike, option: str = "--config") -> dict[str, Any]:
-    """Read a TOML file into a dict (``tomllib``; ``tomli`` on Python 3.10).
+    """Read a TOML file into a dict.
 
     Raises:
       ValueError: naming ``option`` (the command-line option that gave ``path``) when the
         file cannot be read or is not valid TOML.
     """
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
     try:
         with open(path, "rb") as f:
             return tomllib.load(f)
