@@ -509,7 +509,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 def _identify(args: argparse.Namespace) -> tuple[Any, tuple[Any, Any, list[str]]]:
     """The modes of ``--record`` (``tuning.identify.Modes``), printed, and the record
     (``read_record``'s times, channels and names)."""
-    from tuning.identify import identify_modes, read_record
+    from tuning.identify import MAX_ROWS, identify_modes, read_record
 
     if args.damping is not None:
         raise ValueError("--damping: with --record the damping ratios come from the record; give one or the other")
@@ -529,8 +529,12 @@ def _identify(args: argparse.Namespace) -> tuple[Any, tuple[Any, Any, list[str]]
         print(f"note: the model leaves {100 * modes.residual:.3g} % of the record unexplained: check that the window starts after the "
               "excitation has ended (--start); see identification.png", file=sys.stderr)
     if modes.lag_span_s * modes.frequencies_hz[0] < 1:
-        print(f"note: the record is sampled so fast that the model's lags span {modes.lag_span_s:.3g} s, less than a period of mode 1: "
-              "its modes are poorly resolved; low-pass filter it and keep every k-th sample, at several samples per period of the highest mode", file=sys.stderr)
+        if round(modes.lag_span_s / modes.dt) < MAX_ROWS:  # the lags are a third of a short window, not capped
+            print(f"note: the window ({modes.end_s - modes.start_s:.3g} s) is so short that the model's lags (a third of it) span {modes.lag_span_s:.3g} s, "
+                  "less than a period of mode 1: its modes are poorly resolved; widen it (--start, --end) to 3 periods of mode 1 or more", file=sys.stderr)
+        else:
+            print(f"note: the record is sampled so fast that the model's lags span {modes.lag_span_s:.3g} s, less than a period of mode 1: "
+                  "its modes are poorly resolved; low-pass filter it and keep every k-th sample, at several samples per period of the highest mode", file=sys.stderr)
     return modes, (t, y, names)
 
 
