@@ -251,6 +251,7 @@ def test_cli_record_errors_name_options(tmp_path, capsys):
         (["--record", record, "--damping", "0.01"], "error: --damping: with --record the damping ratios come from the record"),
         (["--freqs", "13", "--start", "0.1"], "error: --start, --end and --record-modes apply to --record only"),
         (["--record", record, "--start", "0.19"], "error: --record .*r.csv: the window 0.19-0.199 s holds 10 samples"),
+        (["--record", record, "--start", "5"], r"error: --end must be after --start; got --start = 5 s, --end = 0.199 s \(the last sample\)"),
         (["--record", record, "--record-modes", "3"], "error: --record .*: found 1 mode\\(s\\) above the noise in the window \\(30 Hz\\), not the 3"),
         (["--record", str(tmp_path / "none.csv")], "error: --record: cannot read"),
     ]:

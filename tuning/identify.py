@@ -194,7 +194,8 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
     lo = t[0] if start_s is None else _time("start_s", start_s)
     hi = t[-1] if end_s is None else _time("end_s", end_s)
     if hi <= lo:
-        raise ValueError(f"end_s must be after start_s; got start_s = {lo:g} s, end_s = {hi:g} s")
+        raise ValueError(f"end_s must be after start_s; got start_s = {lo:g} s{' (the first sample)' if start_s is None else ''}, "
+                         f"end_s = {hi:g} s{' (the last sample)' if end_s is None else ''}")
     window = (t >= lo) & (t <= hi)
     t, y = t[window], y[window]
     order = 2 * (n_modes + EXTRA_MODES) + 2
