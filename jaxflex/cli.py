@@ -433,6 +433,11 @@ def _montecarlo(args: argparse.Namespace) -> int:
     spread = ", ".join(f"p{p:g} {format_value(tip[f'p{p:g}'], '.4g')}" for p in summary["percentiles"])
     print(f"{summary['n_scenarios']} scenarios on {summary['devices']} device(s): diverged fraction {summary['diverged_fraction']:.4g}")
     print(f"peak tip deflection (m): mean {format_value(tip['mean'], '.4g')}, {spread}")
+    settling = summary["metrics"]["settling_time_s"]
+    if settling["nonfinite"]:
+        # not diverged is not settled: an unstable loop that grows slowly diverges in no run
+        print(f"note: {settling['nonfinite']} of the {settling['count'] + settling['nonfinite']} runs that did not diverge had not settled by the end "
+              f"of the {config.scenarios.horizon_s:g} s horizon (settling time +inf, left out of its statistics)", file=sys.stderr)
     print(f"wrote {os.path.join(args.out, 'summary.json')} and figures")
     return 0
 
