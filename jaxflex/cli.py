@@ -335,7 +335,11 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     if arm.rayleigh_alpha is None:
         damping = f"damping ratio {float(arm.damping_ratio):g} in flexible modes 1-2"
     else:
-        damping = f"Rayleigh alpha = {float(arm.rayleigh_alpha):g} 1/s, beta = {float(arm.rayleigh_beta):g} s"
+        # each flexible mode's ratio (exact for Rayleigh damping), the number a unit slip changes
+        omega = 2 * np.pi * freqs
+        ratios = float(arm.rayleigh_alpha) / (2 * omega) + float(arm.rayleigh_beta) * omega / 2
+        damping = (f"Rayleigh alpha = {float(arm.rayleigh_alpha):g} 1/s, beta = {float(arm.rayleigh_beta):g} s "
+                   f"(damping ratios {', '.join(f'{z:.4g}' for z in ratios)} in flexible modes 1-{n_modes})")
     line = f"model: {n_modes} mode(s) at {', '.join(f'{f:.4g}' for f in freqs)} Hz with {damping}, sampled every {dt:g} s (Nyquist {nyquist:.4g} Hz)"
     above = freqs[freqs > nyquist]
     if above.size:

@@ -445,7 +445,12 @@ def test_model_line_counts_the_modes_above_nyquist():
     # Rayleigh pair as itself
     assert " Hz with damping ratio 1 in flexible modes 1-2, sampled every " in cli._model_line(BeamParams(damping_ratio=1.0), 2, 1e-3)
     given = BeamParams(rayleigh_alpha=0.5, rayleigh_beta=2e-5)
-    assert " Hz with Rayleigh alpha = 0.5 1/s, beta = 2e-05 s, sampled every " in cli._model_line(given, 2, 1e-3)
+    line = cli._model_line(given, 2, 1e-3)
+    assert " Hz with Rayleigh alpha = 0.5 1/s, beta = 2e-05 s (damping ratios " in line
+    # and the ratios it gives each mode, zeta = alpha / (2 w) + beta w / 2
+    omega = 2 * np.pi * np.asarray(natural_frequencies_hz(BeamParams(), 2), float)
+    ratios = 0.5 / (2 * omega) + 2e-5 * omega / 2
+    assert f"(damping ratios {ratios[0]:.4g}, {ratios[1]:.4g} in flexible modes 1-2), sampled every " in line
 
 
 def test_the_dtype_is_part_of_a_runs_fingerprint():
