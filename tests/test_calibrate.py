@@ -163,6 +163,11 @@ def test_toml_reads_back_as_a_config_with_the_measured_frequencies():
     config = TuneConfig.from_mapping(tomllib.loads(to_toml(result)))
     assert config.n_modes == 3 and config.beam == result.beam
     np.testing.assert_allclose(natural_frequencies_hz(config.beam, config.n_modes), measured, rtol=1e-12)
+    # the damping_ratio that the fitted Rayleigh pair overrides is marked as unused, so that an
+    # edit of it is not silently lost; with one ratio it is what sets the damping
+    assert "damping_ratio = 0.01  # not used: rayleigh_alpha and rayleigh_beta set the damping" in to_toml(result)
+    one = to_toml(calibrate(measured, PAPER, ("youngs_modulus_pa",), damping=[0.02]))
+    assert "not used" not in one and "rayleigh" not in one
 
 
 def test_cli_writes_a_config_the_other_commands_read(tmp_path, capsys):

@@ -260,7 +260,10 @@ def _fit_damping(arm: beam.BeamParams, model_hz: np.ndarray, ratios: np.ndarray)
 def to_toml(calibration: Calibration) -> str:
     """A config holding the calibrated arm: ``n_modes`` and a ``[beam]`` table with every
     field, readable as ``--config`` by ``jaxflex tune``, ``montecarlo`` and ``stability``."""
-    fields = "\n".join(f"{name} = {float(value)!r}" for name, value in calibration.beam._asdict().items() if value is not None)
+    arm = calibration.beam
+    # with the Rayleigh pair set, damping_ratio is ignored: say so where an edit would be lost
+    unused = {"damping_ratio": "  # not used: rayleigh_alpha and rayleigh_beta set the damping (remove both to use it)"} if arm.rayleigh_alpha is not None else {}
+    fields = "\n".join(f"{name} = {float(value)!r}{unused.get(name, '')}" for name, value in arm._asdict().items() if value is not None)
     measured = ", ".join(f"{f:g}" for f in calibration.measured_hz)
     return (
         f"# jaxflex calibrate: the arm fitted to {measured} Hz (hub {calibration.hub}) with {calibration.n_modes} assumed modes.\n"
