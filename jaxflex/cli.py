@@ -326,20 +326,19 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     100 %), the sample time, and the modes above Nyquist."""
     import numpy as np
 
-    from jaxflex.beam import natural_frequencies_hz
+    from jaxflex.beam import natural_frequencies_hz, rayleigh_coefficients
     from jaxflex.plant import check_dt
 
     check_dt(dt)
     freqs = np.asarray(natural_frequencies_hz(arm, n_modes), float)
     nyquist = 0.5 / dt
-    if arm.rayleigh_alpha is None:
-        damping = f"damping ratio {float(arm.damping_ratio):g} in flexible modes 1-2"
-    else:
-        # each flexible mode's ratio (exact for Rayleigh damping), the number a unit slip changes
-        omega = 2 * np.pi * freqs
-        ratios = float(arm.rayleigh_alpha) / (2 * omega) + float(arm.rayleigh_beta) * omega / 2
-        damping = (f"Rayleigh alpha = {float(arm.rayleigh_alpha):g} 1/s, beta = {float(arm.rayleigh_beta):g} s "
-                   f"(damping ratios {', '.join(f'{z:.4g}' for z in ratios)} in flexible modes 1-{n_modes})")
+    # each flexible mode's own ratio (exact for Rayleigh damping): damping_ratio is that of the
+    # 2-mode model, so with other n_modes the modes run with other ratios
+    alpha, beta = (float(c) for c in rayleigh_coefficients(arm))
+    omega = 2 * np.pi * freqs
+    ratios = ", ".join(f"{z:.4g}" for z in alpha / (2 * omega) + beta * omega / 2)
+    given = f"damping_ratio = {float(arm.damping_ratio):g} of the 2-mode model" if arm.rayleigh_alpha is None else f"Rayleigh alpha = {alpha:g} 1/s, beta = {beta:g} s"
+    damping = f"damping ratio {ratios} in flexible mode 1 ({given})" if n_modes == 1 else f"damping ratios {ratios} in flexible modes 1-{n_modes} ({given})"
     line = f"model: {n_modes} mode(s) at {', '.join(f'{f:.4g}' for f in freqs)} Hz with {damping}, sampled every {dt:g} s (Nyquist {nyquist:.4g} Hz)"
     above = freqs[freqs > nyquist]
     if above.size:

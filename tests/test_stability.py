@@ -488,7 +488,7 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     capsys.readouterr()
     assert cli.main(["stability", "--config", str(config), "--modes", "2", "--dt", "0.02", "--tau", "0.02", "--out", str(tmp_path / "o")]) == 0
     assert (
-        f"model: 2 mode(s) at {freqs[0]:.4g}, {freqs[1]:.4g} Hz with damping ratio 0.01 in flexible modes 1-2, sampled every 0.02 s (Nyquist 25 Hz); 1 mode(s) above Nyquist alias in what the controller measures"
+        f"model: 2 mode(s) at {freqs[0]:.4g}, {freqs[1]:.4g} Hz with damping ratios 0.01, 0.01 in flexible modes 1-2 (damping_ratio = 0.01 of the 2-mode model), sampled every 0.02 s (Nyquist 25 Hz); 1 mode(s) above Nyquist alias in what the controller measures"
         in capsys.readouterr().err
     )
     assert 13 < freqs[0] < 25 < freqs[1]
