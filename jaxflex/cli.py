@@ -563,12 +563,13 @@ def _stability(args: argparse.Namespace) -> int:
         except ValueError:
             raise ValueError(f"--tau: its default, the paper's 0.005 s, is {args.tau / dt:g} samples of dt = {dt:g} s; pass --tau, a whole number of samples of dt") from None
     result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
-    first = result["first_destabilising_delay_s"]
+    first, sampled = result["first_destabilising_delay_s"], result["first_destabilising_delay_sampled_s"]
     rk4 = result["spectral_radius_rk4"]
     arm_name = f"the arm of {args.config}" if values.get("beam") else "the paper's arm"
     print(f"{arm_name}, k = {args.k:g}, tau = {args.tau:g} s, {n_modes} modes, dt = {dt:g} s: sampled-loop spectral radius {result['spectral_radius']:.8f} "
           f"({'stable' if result['stable_sampled'] else 'UNSTABLE'}; sampled by RK4, the default of tune and montecarlo: {rk4:.8f}, {'stable' if rk4 < 1 else 'UNSTABLE'}), "
-          f"first destabilising delay {'none' if first is None else f'{first:g} s'}")
+          f"first destabilising delay {'none' if first is None else f'{first:g} s'} (continuous loop; sampled loop: "
+          f"{'none up to ' + format(result['first_destabilising_delay_sampled_tau_max_s'], 'g') + ' s' if sampled is None else f'{sampled:g} s'})")
     print(f"wrote {os.path.join(args.out, 'stability.json')} and {os.path.join(args.out, 'stability_chart.png')}")
     return 0
 

@@ -121,6 +121,10 @@ def run(
         say("sampled loop")
         radius = float(st.spectral_radius(dplant, k, d))
         radius_other = float(st.spectral_radius(dplant_other, k, d))
+        # the sampled loop's own first destabilising delay (whole samples up to the chart's
+        # range): at 1 kHz it can lie well below the continuous loop's
+        unstable = np.flatnonzero(np.asarray(st.sampled_radius_grid(dplant, [k], np.arange(1, d_max + 1)))[:, 0] >= 1)
+        first_sampled = float((unstable[0] + 1) * dt) if unstable.size else None
         v = st.structural_directions(dplant)
         mat = np.asarray(st.sampled_loop_matrix(dplant, k, d))
         r_vec = np.concatenate([v, np.ones((d, 1)) * (np.asarray(dplant.C[:1]) @ v)])
@@ -152,6 +156,8 @@ def run(
         "zero_crossing": None if crit.zero_crossing is None else crit.zero_crossing._asdict(),
         "first_destabilising_delay_s": first,
         "first_destabilising_validation": validation,
+        "first_destabilising_delay_sampled_s": first_sampled,
+        "first_destabilising_delay_sampled_tau_max_s": d_max * dt,
         "spectral_radius": radius,
         f"spectral_radius_{other}": radius_other,
         "stable_sampled": radius < 1,

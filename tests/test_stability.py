@@ -411,6 +411,11 @@ def test_report_writes_chart_and_json(tmp_path):
     v = result["first_destabilising_validation"]
     assert v["rightmost_real_below"] < 0 < v["rightmost_real_above"]
     assert result["excluded_structural"]["multiplicity"] == 1
+    # the sampled loop's own first destabilising delay, in whole samples: 6 ms is stable and
+    # 7 ms is not, below the continuous loop's 7.315 ms
+    assert float(st.spectral_radius(dplant, PAPER_K, 6)) < 1 <= float(st.spectral_radius(dplant, PAPER_K, 7))
+    assert result["first_destabilising_delay_sampled_s"] == pytest.approx(7e-3, rel=1e-12) and 7e-3 < first
+    assert result["first_destabilising_delay_sampled_tau_max_s"] == pytest.approx(0.012, rel=1e-12)
 
 
 def test_an_interrupted_report_leaves_the_earlier_pair_of_files(tmp_path, monkeypatch):
@@ -463,7 +468,8 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
 
     def fake_run(out, **kwargs):
         seen.update(kwargs)
-        return {"spectral_radius": 0.5, "spectral_radius_rk4": 11.44, "stable_sampled": True, "first_destabilising_delay_s": None}
+        return {"spectral_radius": 0.5, "spectral_radius_rk4": 11.44, "stable_sampled": True, "first_destabilising_delay_s": 0.0123,
+                "first_destabilising_delay_sampled_s": None, "first_destabilising_delay_sampled_tau_max_s": 0.04}
 
     monkeypatch.setattr(stability_report, "run", fake_run)
     config = tmp_path / "tune.toml"
@@ -472,7 +478,7 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     assert seen["beam_params"] == arm and (seen["n_modes"], seen["dt"]) == (2, 1e-3)
     assert (seen["k"], seen["tau_s"]) == (55.0, 0.005)  # the paper's point by default
     # the loop tune and montecarlo simulate by default (RK4) is printed beside the ZOH one
-    assert f"the arm of {config}, k = 55, tau = 0.005 s, 2 modes, dt = 0.001 s: sampled-loop spectral radius 0.50000000 (stable; sampled by RK4, the default of tune and montecarlo: 11.44000000, UNSTABLE)" in capsys.readouterr().out
+    assert f"the arm of {config}, k = 55, tau = 0.005 s, 2 modes, dt = 0.001 s: sampled-loop spectral radius 0.50000000 (stable; sampled by RK4, the default of tune and montecarlo: 11.44000000, UNSTABLE), first destabilising delay 0.0123 s (continuous loop; sampled loop: none up to 0.04 s)" in capsys.readouterr().out
     # the tuned arm's model and sample time come from the config, unless the flags say otherwise
     config.write_text('n_modes = 3\n[scenarios]\ndt = 5e-4\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
