@@ -160,10 +160,12 @@ def save(fig: plt.Figure, path: str | os.PathLike) -> None:
         plt.close(fig)
 
 
-def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str, best_step: int | None = None) -> plt.Figure:
+def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str, best_step: int | None = None, paper: float | None = None) -> plt.Figure:
     """Training loss per step and held-out objective at each validation; log scale where the
     finite positive values span a decade or more (over less, a log axis labels one tick).
-    ``best_step``: the step whose parameters were kept, marked by a vertical line."""
+    ``best_step``: the step whose parameters were kept, marked by a vertical line. ``paper``:
+    the paper gains' training objective, named on the axis (1 only for the mean of one unit
+    weight; the CVaR, the worst case and other weights score them otherwise)."""
     fig, ax = plt.subplots(figsize=(7.0, 3.6))
     ax.plot(steps, loss, label="training loss (objective + penalty)", color="C0")
     if len(val_steps):
@@ -175,7 +177,8 @@ def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val:
     if values.size and values.max() >= 10 * values.min():
         ax.set_yscale("log")
     ax.set_xlabel("Step")
-    ax.set_ylabel("Objective (1 = paper gains, training)")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # steps are updates
+    ax.set_ylabel("Objective" if paper is None else f"Objective (paper gains, training: {paper:.4g})")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(title)

@@ -206,6 +206,21 @@ def test_loss_curves_use_a_log_axis_over_a_decade_or_more(low, scale):
     plotting.plt.close(fig)
 
 
+def test_loss_curves_name_the_paper_gains_objective_and_whole_steps():
+    """The paper gains score 1 only for the mean of one unit weight: under the CVaR with an
+    effort term they scored 3.69, on an axis that said '1 = paper gains'."""
+    from jaxflex import plotting
+
+    fig = plotting.loss_curves(np.arange(3), np.array([3.69, 3.68, 3.68]), np.array([0, 2]), np.array([4.9, 5.2]), "t", best_step=0, paper=3.69)
+    ax = fig.axes[0]
+    assert ax.get_ylabel() == "Objective (paper gains, training: 3.69)"
+    fig.canvas.draw()
+    assert all(float(tick) == int(tick) for tick in ax.get_xticks())  # no step 0.25 over 2 updates
+    plotting.plt.close(fig)
+    assert plotting.loss_curves(np.arange(3), np.ones(3), np.array([]), np.array([]), "t").axes[0].get_ylabel() == "Objective"
+    plotting.plt.close("all")
+
+
 def test_failed_write_keeps_the_previous_file(tmp_path):
     path = tmp_path / "results.json"
     fileio.write_json(path, {"good": 1})

@@ -591,7 +591,7 @@ def test_tuned_json_is_there_only_for_a_finished_run(tmp_path, monkeypatch):
     import tuning.run
     from tuning.run import run_tune
 
-    monkeypatch.setattr(tuning.run, "_figures", lambda state, out_dir: [])  # figures: tested elsewhere
+    monkeypatch.setattr(tuning.run, "_figures", lambda state, out_dir, paper_objective: [])  # figures: tested elsewhere
 
     config = TuneConfig(controller="dfs", steps=2, eval_every=1, **SHARED)
     run_tune(config, tmp_path, progress=False)

@@ -18,7 +18,7 @@ from tuning.tuner import Problem, TuneConfig, summarize, tune
 N_SHOWN_HELDOUT = 3
 
 
-def _figures(state: dict[str, Any], out_dir: str) -> list[str]:
+def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> list[str]:
     problem: Problem = state["problem"]
     tc, config = problem.tc, problem.config
     history = state["history"]
@@ -26,7 +26,7 @@ def _figures(state: dict[str, Any], out_dir: str) -> list[str]:
     loss = np.array([h["loss"] for h in history])
     val_rows = [h for h in history if h.get("val_objective") is not None]
     written = []
-    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller}", state["best_step"])
+    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller}", state["best_step"], paper_objective)
     plotting.save(fig, os.path.join(out_dir, "loss.png"))
     written.append("loss.png")
 
@@ -73,6 +73,6 @@ def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = F
     if progress:
         print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)
     summary = summarize(state)
-    summary["figures"] = _figures(state, out_dir)
+    summary["figures"] = _figures(state, out_dir, summary["objective"]["train"]["paper"])
     fileio.write_json(result, summary)
     return summary
