@@ -370,7 +370,7 @@ def _tune(args: argparse.Namespace) -> int:
     print(f"objective, training   {obj['train']['before']:.4g} -> {obj['train']['after']:.4g}")
     print(f"objective, held-out   {obj['heldout']['before']:.4g} -> {obj['heldout']['after']:.4g}")
     stopped = f", stopped early: {config.patience} validations in a row without a better held-out objective" if summary["stopped_early"] else ""
-    print(f"updates {summary['steps_run']} of {config.steps}{stopped}; the tuned gains are the point after {summary['best_step']} updates")
+    print(f"updates {summary['steps_run']} of {config.steps}{stopped}; the tuned gains are the point after {summary['best_step']} update{'s' * (summary['best_step'] != 1)}")
     if summary["best_step"] == 0 and summary["steps_run"] > 0:
         print(f"note: no update improved the held-out objective, so the starting gains are kept; more training scenarios (now {config.n_scenarios}) or a lower learning_rate (now {config.learning_rate:g}) may help", file=sys.stderr)
     if "stability" in summary:

@@ -559,7 +559,8 @@ def test_cli_tune_with_toml_config(tmp_path, capsys):
     assert saved["config"]["n_heldout"] == 12 and saved["config"]["n_scenarios"] == 24 and saved["steps_run"] == 4
     assert saved["dtype"] == "float64"  # the tests run under jax_enable_x64 (conftest.py)
     out = capsys.readouterr().out
-    assert f"updates 4 of 4; the tuned gains are the point after {saved['best_step']} updates" in out
+    best = saved["best_step"]
+    assert f"updates 4 of 4; the tuned gains are the point after {best} update{'s' * (best != 1)}\n" in out
     st = saved["stability"]  # the verdict is printed, with digits enough to see it below 1
     assert f"sampled-loop spectral radius {st['spectral_radius']:.8f}, {'stable' if st['stable'] else 'UNSTABLE'} (decay rate" in out
     for name in saved["figures"]:
