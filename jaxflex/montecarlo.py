@@ -36,7 +36,7 @@ from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
-from jaxflex.plant import METHODS, discretize, make_plant
+from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, perturbed_params, sample_scenarios, scenario_plant
 
@@ -119,8 +119,7 @@ class MCConfig:
         keys = [f"p{p:g}" for p in self.percentiles]
         if len(set(keys)) != len(keys):
             raise ValueError(f"percentiles must differ in their first 6 significant digits (each is reported as p<value>: {keys}); got {self.percentiles!r}")
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
+        check_method(self.method)
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", check_temperature(self.fuzzy_temperature, "fuzzy_temperature"))

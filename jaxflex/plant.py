@@ -76,6 +76,13 @@ class DiscretePlant(NamedTuple):
 METHODS = ("rk4", "zoh")
 
 
+def check_method(method: str, name: str = "method") -> str:
+    """``method`` when it is one of ``METHODS``; else ValueError naming ``name``."""
+    if method not in METHODS:
+        raise ValueError(f"{name} must be one of {METHODS}; got {method!r}")
+    return method
+
+
 def check_continuous(plant: LinearPlant, name: str = "plant") -> LinearPlant:
     """``plant`` when it is a continuous-time LinearPlant; else ValueError naming ``name``
     (a DiscretePlant's ``Ad`` read as ``A`` would give wrong results, not an error)."""
@@ -165,8 +172,7 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") ->
     """
     check_continuous(plant)
     check_dt(dt)
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    check_method(method)
     sampled = _discretize(plant, dt, method)
     hint = " or method = 'zoh'" if method == "rk4" else ""
     _check_finite_maps(sampled, ("Ad", "Bd", "Ed"), f"at dt = {float(dt):g} s, method = {method!r} (use a smaller dt{hint})")

@@ -29,7 +29,7 @@ from jaxflex.controllers.base import same_dt
 from jaxflex.controllers.dfs import CAPACITY_REMEDY
 from jaxflex.controllers.fuzzy import check_temperature, fuzzy_params, fuzzy_surface
 from jaxflex.controllers.registry import PARAMETERS
-from jaxflex.plant import METHODS, discretize, make_plant, rk4_amplified_omega
+from jaxflex.plant import check_method, discretize, make_plant, rk4_amplified_omega
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import paper_scenario
 
@@ -313,8 +313,7 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
     dt = checks.number(f"--params: {path}'s scenarios.dt", table.get("dt", DT) if isinstance(table, dict) else table, strict=True)
     n_modes = checks.integer(f"--params: {path}'s n_modes", config.get("n_modes", 2))
     method = config.get("method", "rk4")
-    if method not in METHODS:
-        raise ValueError(f"--params: {path}'s method must be one of {METHODS}; got {method!r}")
+    check_method(method, f"--params: {path}'s method")
     arm = config.get("beam", {})
     try:
         tuned_beam = beam.params_from_mapping({k: v for k, v in arm.items() if v is not None} if isinstance(arm, dict) else arm)

@@ -21,7 +21,7 @@ from jax.typing import ArrayLike
 
 from jaxflex import beam, checks, fileio
 from jaxflex.controllers.base import is_concrete
-from jaxflex.plant import METHODS, DiscretePlant, LinearPlant, check_rk4_step, discretize, make_plant, n_modes_of
+from jaxflex.plant import DiscretePlant, LinearPlant, check_method, check_rk4_step, discretize, make_plant, n_modes_of
 
 READINGS = ("printed", "block")
 
@@ -91,8 +91,7 @@ def check_plants(spec: "ScenarioSpec", params: beam.BeamParams, n_modes: int, me
         naming the corner (each factor) before the plant's own message.
     """
     checks.instance("spec", spec, ScenarioSpec, "build one with ScenarioSpec(...)")
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    check_method(method)
     ranges = [
         (1 - spec.youngs_modulus_rel, 1 + spec.youngs_modulus_rel),
         (1 - spec.density_rel, 1 + spec.density_rel),

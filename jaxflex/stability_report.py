@@ -19,7 +19,7 @@ import jaxflex
 from jaxflex import beam, checks, fileio, plotting
 from jaxflex.analysis import stability as st
 from jaxflex.controllers.base import check_finite_scalar
-from jaxflex.plant import METHODS, discretize, make_plant
+from jaxflex.plant import check_method, discretize, make_plant
 
 CHART_FILE = "stability_chart.png"
 JSON_FILE = "stability.json"
@@ -77,8 +77,7 @@ def run(
     dt = check_finite_scalar("dt", dt, positive=True)
     d = st.delay_steps_of(tau_s, dt)
     tau = float(tau_s)
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    check_method(method)
     n_k = checks.integer("n_k", n_k, 2)
     n_cheb = checks.integer("n_cheb", n_cheb, 2)
     if k_range is None:

@@ -30,7 +30,7 @@ from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
-from jaxflex.plant import METHODS, discretize, make_plant
+from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, sample_scenarios, scenario_plant
 from tuning import objectives
@@ -105,8 +105,7 @@ class TuneConfig:
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", check_temperature(self.fuzzy_temperature, "fuzzy_temperature"))
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
+        check_method(self.method)
         if not isinstance(self.scenarios, ScenarioSpec):
             raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")
         if not isinstance(self.objective, ObjectiveSpec):
