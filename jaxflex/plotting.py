@@ -199,10 +199,16 @@ def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title:
         if finite.size:
             ax.hist(finite, bins=bins, color="C0", alpha=0.8)
         ax.set_title(f"{name} ({values.size - finite.size} non-finite)" if finite.size < values.size else name, fontsize=9)
-        ax.set_xlabel(textwrap.fill(labels.get(name, name), 60), fontsize=7)
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(names) :]:
         ax.axis("off")
+    fig.canvas.draw()  # the tick formatters choose their offset or multiplier when drawn
+    for ax, name in zip(axes.ravel(), names):
+        offset = ax.xaxis.get_offset_text().get_text()
+        # At the axis' lower right the offset would sit on the wrapped label: name it there.
+        ax.xaxis.get_offset_text().set_visible(False)
+        label = labels.get(name, name) + (f" (ticks: {offset})" if offset else "")
+        ax.set_xlabel(textwrap.fill(label, 60), fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
     return fig

@@ -599,3 +599,18 @@ def test_response_figure_tells_runs_apart_and_scales_to_the_settled_ones():
         styles = {(line.get_color(), line.get_linestyle()) for line in fig.axes[0].get_lines()}
         plt.close(fig)
         assert len(styles) == 2
+
+
+def test_histograms_name_an_axis_offset_in_the_label_instead_of_over_it():
+    """Matplotlib draws an axis' offset ('+1e5') at its lower right, where the wrapped metric
+    label sits: montecarlo's histograms.png printed one over the other."""
+    from jaxflex import plotting
+
+    rng = np.random.default_rng(0)
+    data = {"settle_s": 1e5 + rng.standard_normal(200), "reduction_db": 60 + rng.standard_normal(200)}
+    fig = plotting.histograms(data, {"settle_s": "settling time (s)"}, "t")
+    fig.canvas.draw()
+    shifted, plain = fig.axes[:2]
+    assert shifted.get_xlabel() == "settling time (s) (ticks: +1e5)" and not shifted.xaxis.get_offset_text().get_visible()
+    assert plain.get_xlabel() == "reduction_db"
+    plotting.plt.close(fig)
