@@ -111,7 +111,19 @@ def read_toml(path: str | os.PathLike, option: str = "--config") -> dict[str, An
     except OSError as err:
         raise ValueError(f"{option}: cannot read {path}: {err.strerror or err}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:  # TOML is UTF-8
+        if _is_json(path):
+            raise ValueError(f"{option}: {path} is JSON, not TOML (a tuned.json from `jaxflex tune` goes to --params of "
+                             "reproduce or montecarlo; the arm it was tuned for comes with it)") from None
         raise ValueError(f"{option}: {path} is not valid TOML: {err}") from None
+
+
+def _is_json(path: str | os.PathLike) -> bool:
+    try:
+        with open(path, "rb") as f:
+            json.load(f)
+    except (OSError, ValueError):
+        return False
+    return True
 
 
 def check_keys(values: Any, accepted: Any, what: str) -> None:

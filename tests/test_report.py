@@ -434,7 +434,10 @@ def test_cli_unreadable_config_is_named(tmp_path, capsys):
     bad.write_text("k = [\n")
     binary = tmp_path / "binary.toml"
     binary.write_bytes(b'x = "\xff"\n')  # not UTF-8
-    cases = ((tmp_path / "missing.toml", "cannot read .*missing.toml: No such file or directory"), (bad, ".*bad.toml is not valid TOML"), (binary, ".*binary.toml is not valid TOML: 'utf-8' codec"))
+    tuned = tmp_path / "tuned.json"  # what tune wrote, passed where its config went
+    tuned.write_text('{"controller": "dfs", "params": {"k": 55.0}}\n')
+    cases = ((tmp_path / "missing.toml", "cannot read .*missing.toml: No such file or directory"), (bad, ".*bad.toml is not valid TOML"), (binary, ".*binary.toml is not valid TOML: 'utf-8' codec"),
+             (tuned, r".*tuned.json is JSON, not TOML \(a tuned.json from `jaxflex tune` goes to --params of reproduce or montecarlo"))
     for command in ("tune", "montecarlo", "stability"):
         for path, reason in cases:
             assert cli.main([command, "--config", str(path), "--out", str(tmp_path / command)]) == 2
