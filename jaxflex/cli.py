@@ -400,9 +400,14 @@ def _montecarlo(args: argparse.Namespace) -> int:
     from jaxflex.montecarlo import MCConfig, run_montecarlo
     from jaxflex.report import format_value, load_tuned
     from jaxflex.scenarios import ScenarioSpec
+    from tuning.tuner import TuneConfig
 
     values = fileio.read_toml(args.config) if args.config else {}
-    fileio.check_keys(values, [f.name for f in dataclasses.fields(MCConfig)], "config")
+    accepted = {f.name for f in dataclasses.fields(MCConfig)}
+    if isinstance(values, Mapping) and (unknown := set(values) - accepted) and unknown <= {f.name for f in dataclasses.fields(TuneConfig)}:
+        raise ValueError(f"--config: {args.config} is a tune config: montecarlo does not read {sorted(unknown)}. Pass the tuned.json the run wrote as "
+                         f"--params (it carries the arm, model and sample time), and a --config with montecarlo's keys only: {sorted(accepted)}")
+    fileio.check_keys(values, accepted, "config")
     tuned = load_tuned(args.params) if args.params else None
     if "scenarios" in values or tuned is not None:
         table = values.get("scenarios", {})

@@ -248,6 +248,9 @@ def test_cli_refuses_unknown_config_key(tmp_path, capsys):
     bad.write_text("scenarioz = 3\n")
     assert cli.main(["montecarlo", "--config", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert "unknown config key(s) ['scenarioz']" in capsys.readouterr().err
+    bad.write_text('controller = "dfs"\nsteps = 300\n[objective]\ntip_ise = 1.0\n')  # the config a tune run was given
+    assert cli.main(["montecarlo", "--config", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert f"--config: {bad} is a tune config: montecarlo does not read ['objective', 'steps']. Pass the tuned.json the run wrote as --params" in capsys.readouterr().err
 
 
 def test_cli_says_how_many_runs_did_not_settle(tmp_path, capsys):
