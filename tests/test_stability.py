@@ -458,7 +458,12 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     from jaxflex.plant import discretize, make_plant
 
     arm = BeamParams(length_m=0.6, payload_mass_kg=0.05)
+    titles = []
+    chart = plotting.stability_chart
+    monkeypatch.setattr(plotting, "stability_chart", lambda *a, **kw: titles.append(kw["title"]) or chart(*a, **kw))
     result = stability_report.run(tmp_path / "arm", n_k=2, tau_max_s=0.006, n_cheb=8, beam_params=arm)
+    f1, f2 = beam.natural_frequencies_hz(arm, 2)
+    assert titles == [f"DFS stability: 0.6 m arm, 2 modes at {f1:.3g}, {f2:.3g} Hz, sampled at 1 ms (zoh)"]  # the chart names its arm
     expected = float(st.spectral_radius(discretize(make_plant(arm, 2), 1e-3, "zoh"), 55.0, 5))
     paper = float(st.spectral_radius(discretize(make_plant(BeamParams(), 2), 1e-3, "zoh"), 55.0, 5))
     np.testing.assert_allclose(result["spectral_radius"], expected, rtol=1e-12)
