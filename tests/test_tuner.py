@@ -526,6 +526,12 @@ def test_bad_input_is_refused(tmp_path):
     cfg = TuneConfig(controller="dfs", steps=2, initial={"k": 1e300}, **SHARED)
     with pytest.raises(ValueError, match=r"the objective is nan at the starting parameters, before any update: check \[initial\]"):
         tune(cfg, tmp_path / "start", progress=False)
+    # Over 2 samples DFS's torque reaches no tip deflection yet: every update would be zero,
+    # and the run ended saying only that none improved the held-out objective.
+    cfg = TuneConfig(controller="dfs", steps=2, **{**SHARED, "scenarios": ScenarioSpec(horizon_s=0.002)})
+    with pytest.raises(ValueError, match=r"gradient is exactly zero at the starting parameters, so no update can move them: over the horizon of 0.002 s \(2 samples"):
+        tune(cfg, tmp_path / "short", progress=False)
+    assert not (tmp_path / "short" / CHECKPOINT).exists()
 
 
 @pytest.mark.parametrize("best_step", [0, 3])

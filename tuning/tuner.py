@@ -321,8 +321,9 @@ def tune(
         before anything is sampled, compiled or written.
 
     Raises:
-      ValueError: bad configuration, a checkpoint of another run, or an objective that
-        became NaN (the last checkpoint is kept).
+      ValueError: bad configuration, a checkpoint of another run, an objective that
+        became NaN (the last checkpoint is kept), or a gradient exactly zero at the start
+        (nothing written).
     """
     checks.instance("config", config, TuneConfig, "build one with TuneConfig(...)")
     if optimizer is not None:
@@ -404,6 +405,12 @@ def tune(
                     if n == 0:  # no update has been taken: the learning rate is not the cause
                         raise ValueError(f"{what} at the starting parameters, before any update: check [initial], [objective] and [scenarios]; {kept}")
                     raise ValueError(f"{what} at step {n + 1}: lower learning_rate or clip_norm, or check the scenarios; {kept}")
+                if n == 0 and grad_norm == 0.0:  # no update could ever move them
+                    spec = config.scenarios
+                    raise ValueError(f"the objective's gradient is exactly zero at the starting parameters, so no update can move them: over the "
+                                     f"horizon of {spec.horizon_s:g} s ({round(spec.horizon_s / spec.dt)} samples of dt = {spec.dt:g} s) the objective does not "
+                                     "depend on them (too short a horizon for the controller's torque to reach what [objective] weighs, or "
+                                     "scenarios with nothing to respond to); lengthen [scenarios] horizon_s, or check [scenarios] and [objective]")
                 state["raw"], state["opt_state"], state["step"] = raw, opt_state, n + 1
             row = {"step": n, **{k: float(v) for k, v in info.items()}}
             row.update(problem.tc.named(problem.tc.to_physical(at)))
