@@ -174,8 +174,9 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") ->
     check_dt(dt)
     check_method(method)
     sampled = _discretize(plant, dt, method)
-    hint = " or method = 'zoh'" if method == "rk4" else ""
-    _check_finite_maps(sampled, ("Ad", "Bd", "Ed"), f"at dt = {float(dt):g} s, method = {method!r} (use a smaller dt{hint})")
+    if not isinstance(dt, jax.core.Tracer):  # a traced dt (jit, vmap or grad over it) makes traced maps: nothing to check
+        hint = " or method = 'zoh'" if method == "rk4" else ""
+        _check_finite_maps(sampled, ("Ad", "Bd", "Ed"), f"at dt = {float(dt):g} s, method = {method!r} (use a smaller dt{hint})")
     return sampled
 
 

@@ -324,3 +324,19 @@ def test_make_plant_jacobian_in_every_parameter_against_fd():
         fd = (np.asarray(f(1 + e)) - np.asarray(f(1 - e))) / (2 * h)
         assert np.max(np.abs(fd)) > 0, name
         np.testing.assert_allclose(jac[:, i], fd, rtol=1e-6, atol=1e-7 * np.max(np.abs(fd)), err_msg=name)
+
+
+def test_discretize_takes_a_traced_dt():
+    """jit, vmap and grad over the sample time: discretize formatted ``float(dt)`` into its
+    finiteness message before looking at whether the maps were traced, so a traced dt failed
+    with a ConcretizationTypeError. Oracles: the eager plant at each dt, and for ZOH
+    d Ad / d dt = A Ad (Ad = expm(A dt))."""
+    cont = make_plant(BeamParams(), 2)
+    dts = jnp.array([5e-4, 1e-3, 2e-3])
+    for method in ("zoh", "rk4"):
+        batch = jax.vmap(lambda dt: discretize(cont, dt, method).Ad)(dts)
+        for i, dt in enumerate([5e-4, 1e-3, 2e-3]):
+            np.testing.assert_allclose(batch[i], discretize(cont, dt, method).Ad, rtol=1e-12, atol=1e-14)
+    d_ad = jax.jacfwd(lambda dt: discretize(cont, dt, "zoh").Ad)(1e-3)
+    expected = np.asarray(cont.A) @ np.asarray(discretize(cont, 1e-3, "zoh").Ad)
+    np.testing.assert_allclose(d_ad, expected, rtol=1e-9, atol=1e-9 * np.max(np.abs(expected)))
