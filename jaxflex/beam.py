@@ -112,8 +112,8 @@ def check_beam_params(params: BeamParams, dtype: jax.typing.DTypeLike | None = N
         but inf in float32), and a positive field at least its smallest normal number (else 0).
 
     Raises:
-      ValueError: naming the field and its accepted range, or ``params`` when it is not a
-        ``BeamParams`` (a dict of the fields, say).
+      ValueError: naming the field and its accepted range (a concrete field must be a real
+        scalar), or ``params`` when it is not a ``BeamParams`` (a dict of the fields, say).
     """
     if not isinstance(params, BeamParams):
         raise ValueError(f"params must be a BeamParams (jaxflex.beam.BeamParams(length_m=..., ...)); got {type(params).__name__} {params!r}")
@@ -121,7 +121,9 @@ def check_beam_params(params: BeamParams, dtype: jax.typing.DTypeLike | None = N
         value = getattr(params, name)
         if (value is None and name.startswith("rayleigh")) or isinstance(value, jax.core.Tracer):
             continue
-        arr = checks.real_array(f"BeamParams.{name}", value)
+        arr = checks.real_array(f"BeamParams.{name}", value, scalar=True)
+        if arr.ndim != 0:  # the matrices are built for one arm: an array failed deep in JAX with a reshape error
+            raise ValueError(f"BeamParams.{name} must be a scalar (one arm; jax.vmap over arms for a batch); got shape {arr.shape}")
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"BeamParams.{name} must be finite; got {value}")
         if name in _POSITIVE_FIELDS and not np.all(arr > 0):

@@ -176,7 +176,7 @@ def test_frequency_gradients_match_central_differences(field):
         (dict(hub_inertia_kg_m2=float("inf")), "hub_inertia_kg_m2 must be finite"),
         (dict(payload_mass_kg=-0.1), "payload_mass_kg must be >= 0"),
         (dict(rayleigh_alpha=0.1), "given together"),
-        (dict(length_m="0.9"), r"length_m must be a real number or an array of real numbers; got '0\.9'"),
+        (dict(length_m="0.9"), r"length_m must be a real number; got '0\.9'"),
         (dict(damping_ratio=True), r"damping_ratio must be a real number"),
         (dict(width_m=[0.01, [0.02]]), r"width_m must be a real number"),
         (dict(length_m=None), r"length_m must be a real number"),  # only the Rayleigh fields may be None
@@ -300,3 +300,28 @@ def test_mode_shapes_refuse_positions_just_off_the_beam(positions):
 def test_the_most_modes_accepted_are_computed():
     freqs = np.asarray(beam.natural_frequencies_hz(BeamParams(), beam.MAX_MODES))
     assert np.all(np.isfinite(freqs)) and np.all(np.diff(freqs) > 0)
+
+
+@pytest.mark.parametrize(
+    "params, match",
+    [
+        ({"length_m": 1.2}, r"params must be a BeamParams .*got dict"),
+        (BeamParams(length_m="0.9"), r"BeamParams\.length_m must be a real number; got '0\.9'"),
+        (BeamParams(width_m=[0.01, 0.02]), r"BeamParams\.width_m must be a scalar \(one arm; jax\.vmap over arms for a batch\); got shape \(2,\)"),
+        (BeamParams(width_m=np.array([0.01, 0.02])), r"BeamParams\.width_m must be a scalar .*got shape \(2,\)"),
+    ],
+)
+def test_every_public_arm_function_refuses_a_bad_arm_by_name(params, match):
+    """make_plant read the fields (structural_dtype) before checking them: a dict failed with
+    an AttributeError and a string with JAX's TypeError. A field holding an array (a batch of
+    arms) passed the checks and failed deep in JAX with a reshape error, in make_plant,
+    modal_matrices and natural_frequencies_hz alike."""
+    from jaxflex.plant import make_plant
+
+    for f in (make_plant, beam.modal_matrices, beam.natural_frequencies_hz, beam.exact_natural_frequencies_hz):
+        with pytest.raises(ValueError, match=match):
+            f(params, 2)
+    # a batch of arms is jax.vmap's: one arm per call
+    widths = jnp.array([0.015, 0.019008])
+    batch = jax.vmap(lambda w: beam.natural_frequencies_hz(BeamParams(width_m=w), 2))(widths)
+    np.testing.assert_allclose(batch[1], beam.natural_frequencies_hz(BeamParams(), 2), rtol=1e-12)

@@ -129,7 +129,7 @@ def test_one_damping_ratio_is_the_damping_ratio():
         (dict(fit="youngs_modulus_pa"), "fit must be a list or tuple"),
         (dict(fit={"youngs_modulus_pa": 1}), "fit must be a list or tuple"),
         (dict(measured_hz=[14.0, [40.0]]), "measured_hz must be a real number"),
-        (dict(params=PAPER._replace(youngs_modulus_pa=np.array([70e9, 71e9]))), "youngs_modulus_pa must be a number in the arm"),
+        (dict(params=PAPER._replace(youngs_modulus_pa=np.array([70e9, 71e9]))), r"BeamParams.youngs_modulus_pa must be a scalar \(one arm"),
         (dict(fit=("thickness_m", "thickness_m")), "fit must name distinct fields"),
         (dict(fit=("youngs_modulus_pa", "hub_inertia_kg_m2", "thickness_m")), "fit names 3 fields but 2 frequencies"),
         (dict(fit=("payload_mass_kg",)), "payload_mass_kg start"),

@@ -130,9 +130,6 @@ def _check(measured_hz: Any, params: beam.BeamParams, fit: Sequence[str] | None,
         raise ValueError(f"fit must name distinct fields among {', '.join(FITTABLE)}; got {list(fit)}")
     if len(fit) > measured.size:
         raise ValueError(f"fit names {len(fit)} fields but {_count(measured.size)} measured: fit at most {measured.size}")
-    arrays = [name for name in fit if np.ndim(getattr(params, name)) != 0]
-    if arrays:
-        raise ValueError(f"{', '.join(arrays)} must be a number in the arm to fit it; got an array")
     zero = [name for name in fit if float(getattr(params, name)) <= 0]
     if zero:
         raise ValueError(f"{', '.join(zero)} start(s) at 0: give a positive starting value in the arm ([beam]) to fit it")
