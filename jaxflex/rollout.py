@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxflex import checks
 from jaxflex.analysis.metrics import DIVERGENCE_THRESHOLD
 from jaxflex.controllers.base import Controller, check_controller, is_concrete, same_dt
 from jaxflex.plant import DiscretePlant, check_sampled
@@ -109,6 +110,11 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
     """Shapes and dtypes of the loop's inputs, and the metrics' options, named when wrong;
     returns ``settling_band`` as a Python float (a constant of the loop)."""
     check_sampled(plant)
+    checks.instance("scenario", scenario, Scenario, "build one with paper_scenario(...), initial_condition(...) or sample_scenarios(...), one member of a batch at a time")
+    for name in ("x0", "force", "noise"):
+        value = getattr(scenario, name)
+        if not isinstance(value, (jax.Array, np.ndarray)):
+            raise ValueError(f"scenario.{name} must be an array in the plant's dtype (jnp.asarray(..., dtype)); got {type(value).__name__}")
     n_x = plant.Ad.shape[-1]
     if plant.Ad.shape != (n_x, n_x):
         raise ValueError(f"Ad must be square; got {plant.Ad.shape}")
@@ -123,6 +129,8 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
     for name in ("x0", "force", "noise"):
         if getattr(scenario, name).dtype != dtype:
             raise ValueError(f"scenario.{name} is {getattr(scenario, name).dtype} but the plant is {dtype}: build both in one dtype")
+        if is_concrete(getattr(scenario, name)) and not np.all(np.isfinite(np.asarray(getattr(scenario, name)))):  # traced ones (vmap, jit) run NaN and report themselves diverged
+            raise ValueError(f"scenario.{name} must be finite; got inf or NaN")
     for path, leaf in jax.tree_util.tree_leaves_with_path(params):
         leaf_dtype = getattr(leaf, "dtype", None)
         weak = getattr(getattr(leaf, "aval", leaf), "weak_type", False)
@@ -136,6 +144,8 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
     if not (is_concrete(settling_band) and np.ndim(settling_band) == 0 and np.asarray(settling_band).dtype.kind in "iuf" and 0 < float(settling_band) < 1):
         raise ValueError(f"settling_band must be a number in (0, 1) (a fraction of the peak), concrete (not traced); got {settling_band!r}")
     if mode_freqs_hz is not None:
+        if is_concrete(mode_freqs_hz):
+            checks.real_array("mode_freqs_hz", mode_freqs_hz)
         freqs = jnp.asarray(mode_freqs_hz)
         if freqs.ndim > 1:
             raise ValueError(f"mode_freqs_hz must be a 1-D array of frequencies (Hz); got shape {freqs.shape}")
@@ -172,7 +182,8 @@ def rollout(
 
     Raises:
       ValueError: naming a plant that is not a DiscretePlant, a controller that is not a
-        Controller (a factory passed uncalled), a shape, dtype or option that is wrong (parameter values through
+        Controller (a factory passed uncalled), a scenario that is not a Scenario of arrays
+        or (when concrete) not finite, a shape, dtype or option that is wrong (parameter values through
         the controller's ``check`` where they are concrete), or a controller built for
         another sample time than the plant's (a traced plant, e.g. under ``jit``, runs
         NaN instead and reports itself diverged).

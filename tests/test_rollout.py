@@ -466,3 +466,26 @@ def test_a_sample_time_a_tenth_of_a_percent_off_is_another_dt():
     assert bool(simulate(near, dfs(dt=1e-3), DFSParams(55.0, 0.005), sc, output="metrics").diverged)
     with pytest.raises(ValueError, match=r"built for dt = 0.001 s and dt = 0.001001 s"):
         combine(dfs(dt=1e-3), dfs(dt=1.001e-3))
+
+
+def test_a_scenario_that_is_not_a_scenario_of_finite_arrays_is_refused_by_name(plant2):
+    """rollout read scenario.x0 without a look at what it was given: None or a bare tuple failed
+    with an AttributeError, a Python list as x0 too; a concrete NaN or inf in x0, force or
+    noise ran silently to a NaN trajectory; a string of frequencies failed in JAX's TypeError."""
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    run = lambda s, **kw: jf.rollout(plant2, dfs(), DFSParams(55.0, 0.005), s, **kw)  # noqa: E731
+    for bad in (None, (sc.x0, sc.force, sc.noise)):
+        with pytest.raises(ValueError, match=r"scenario must be a Scenario \(build one with paper_scenario\(...\), .*; got (NoneType|tuple)"):
+            run(bad)
+    with pytest.raises(ValueError, match=r"scenario.x0 must be an array in the plant's dtype .*; got list"):
+        run(sc._replace(x0=[0.0, 1e-3, 0.0, 0.0, 1e-5, 0.0]))
+    for name, bad in (("x0", sc.x0.at[1].set(jnp.nan)), ("force", sc.force.at[3, 0].set(jnp.inf)), ("noise", sc.noise.at[0, 1].set(jnp.nan))):
+        with pytest.raises(ValueError, match=rf"scenario.{name} must be finite; got inf or NaN"):
+            run(sc._replace(**{name: bad}))
+    with pytest.raises(ValueError, match=r"mode_freqs_hz must be a real number or an array of real numbers; got '13'"):
+        run(sc, output="metrics", mode_freqs_hz="13")
+    # traced scenarios are not checked: a NaN member of a batch reports itself diverged
+    batch = jax.tree.map(lambda a: jnp.stack([a, a]), sc)._replace(plant=None)
+    batch = batch._replace(x0=batch.x0.at[1, 1].set(jnp.nan))
+    m = jax.vmap(lambda s: run(s, output="metrics"))(batch)
+    assert m.diverged.tolist() == [False, True]
