@@ -149,10 +149,16 @@ def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, d
     elif plant_dt is not None and not math.isclose(checks.number("dt", dt, strict=True, unit="seconds"), plant_dt, rel_tol=1e-6):  # a float32 plant holds dt rounded
         raise ValueError(f"dt = {dt!r} s differs from the sampled plant's dt = {plant_dt:.7g} s: leave dt out, or sample the plant at it")
     steps = horizon_steps(horizon_s, dt)
-    dtype = plant.C.dtype if dtype is None else dtype
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise ValueError(f"dtype must be a floating dtype; got {jnp.dtype(dtype)}")
+    dtype = _float_dtype(plant.C.dtype if dtype is None else dtype)
     return Scenario(jnp.asarray(_paper_x0(n, reading), dtype), jnp.zeros((steps, 1), dtype), jnp.zeros((steps, 2), dtype))
+
+
+def _float_dtype(dtype: Any) -> np.dtype:
+    """``dtype`` (None: JAX's default float) when it is a floating dtype; else ValueError."""
+    dtype = jnp.zeros((), dtype).dtype
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"dtype must be a floating dtype; got {dtype}")
+    return dtype
 
 
 def _paper_x0(n_modes: int, reading: str = "printed") -> np.ndarray:
@@ -171,8 +177,19 @@ def _paper_x0(n_modes: int, reading: str = "printed") -> np.ndarray:
 
 
 def initial_condition(x0: ArrayLike, steps: int, dtype=None) -> Scenario:
-    """A scenario with the given initial state and no force or noise for ``steps`` samples."""
-    x0 = jnp.asarray(x0, dtype)
+    """A scenario with the given initial state and no force or noise for ``steps`` samples.
+
+    Args:
+      x0: [n_x] initial state (a number array; integers are taken as floats).
+      steps: number of samples (Python int >= 1).
+      dtype: floating dtype of the arrays; default: that of a floating ``x0``, else JAX's
+        default float.
+    """
+    if is_concrete(x0):
+        checks.real_array("x0", x0)
+    x0 = jnp.asarray(x0)
+    if dtype is not None or not jnp.issubdtype(x0.dtype, jnp.floating):  # an int32 scenario would only be refused by rollout
+        x0 = x0.astype(_float_dtype(dtype))
     if x0.ndim != 1:
         raise ValueError(f"x0 must have shape (n_x,); got {x0.shape}")
     steps = checks.integer("steps", steps)
@@ -270,12 +287,19 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
       n_modes: number of assumed modes of the plant (sets the state size).
       dtype: floating dtype (default: JAX's default float).
 
+    Raises:
+      ValueError: naming ``spec`` when it is not a ScenarioSpec, ``key`` when it is not a PRNG
+        key, ``n``, ``n_modes`` or ``dtype`` out of range.
+
     Returns:
       Scenario with fields [n, ...]; ``plant`` is None unless the spec perturbs the plant.
     """
+    checks.instance("spec", spec, ScenarioSpec, "build one with ScenarioSpec(...) or ScenarioSpec.from_mapping({...})")
+    if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or (key.dtype == jnp.uint32 and key.shape == (2,)))):
+        raise ValueError(f"key must be a JAX PRNG key (jax.random.key(seed)); got {type(key).__name__} {key!r}")
     n = checks.integer("n (number of scenarios)", n)
     n_modes = beam.check_n_modes(n_modes)
-    dtype = jnp.zeros((), dtype).dtype
+    dtype = _float_dtype(dtype)
     steps, dt = spec.steps, spec.dt
     n_q = n_modes + 1
     keys = jax.random.split(key, 10)

@@ -5,13 +5,14 @@ import dataclasses
 import itertools
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxflex.beam import BeamParams
 from jaxflex.montecarlo import MCConfig
 from jaxflex.plant import check_rk4_step, make_plant
-from jaxflex.scenarios import PlantPerturbation, ScenarioSpec, _paper_x0, check_plants, perturbed_params, sample_scenarios
+from jaxflex.scenarios import PlantPerturbation, ScenarioSpec, _paper_x0, check_plants, initial_condition, perturbed_params, sample_scenarios
 from tuning.tuner import TuneConfig
 
 N = 4000
@@ -158,3 +159,28 @@ def test_the_fastest_mode_of_any_drawn_arm_is_at_a_corner():
     inside = [fastest(s) for s in np.random.default_rng(0).uniform(box[:, 0], box[:, 1], (64, 4))]
     assert max(inside) < corners
     assert max(inside) > 0.8 * corners  # the draws reach near it, so the bound is not vacuous
+
+
+def test_sample_scenarios_and_initial_condition_name_bad_inputs():
+    """A dict for the spec failed with an AttributeError, an int for the key with JAX's
+    'invalid PRNG key data' TypeError, an integer dtype with a message about jax.random.normal;
+    initial_condition took a string into JAX's TypeError and integers into an int32 scenario
+    that rollout then refused for its dtype."""
+    spec = ScenarioSpec(horizon_s=0.01)
+    with pytest.raises(ValueError, match=r"spec must be a ScenarioSpec \(build one with ScenarioSpec\(...\).*; got dict"):
+        sample_scenarios({"horizon_s": 0.01}, jax.random.key(0), 2)
+    for key in (0, np.uint32(3), jnp.zeros(3, jnp.uint32)):
+        with pytest.raises(ValueError, match=r"key must be a JAX PRNG key \(jax.random.key\(seed\)\)"):
+            sample_scenarios(spec, key, 2)
+    with pytest.raises(ValueError, match=r"dtype must be a floating dtype; got int32"):
+        sample_scenarios(spec, jax.random.key(0), 2, dtype=jnp.int32)
+    # both kinds of key draw the same scenarios
+    new, legacy = sample_scenarios(spec, jax.random.key(1), 3), sample_scenarios(spec, jax.random.PRNGKey(1), 3)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(legacy)))
+    with pytest.raises(ValueError, match=r"x0 must be a real number or an array of real numbers; got 'abc'"):
+        initial_condition("abc", 10)
+    with pytest.raises(ValueError, match=r"dtype must be a floating dtype; got int32"):
+        initial_condition([0.0] * 6, 10, dtype=jnp.int32)
+    sc = initial_condition([0, 1, 0, 0, 0, 0], 10)
+    assert sc.x0.dtype == jnp.zeros(()).dtype and sc.x0.tolist() == [0, 1, 0, 0, 0, 0]
+    assert initial_condition(np.zeros(6, np.float32), 10).x0.dtype == jnp.float32  # a float x0 keeps its dtype
