@@ -215,3 +215,18 @@ def test_signal_metrics_passes_band_and_final_fraction_to_the_settling_time():
         expected = _settling_reference(s, 1.0, **kwargs)
         assert float(signal_metrics(s, 1.0, **kwargs).settling_time_s) == expected
     assert _settling_reference(s, 1.0, band=0.5, final_fraction=1.0) == math.inf  # s_f = 4.5: the last sample is outside
+
+
+def test_a_signal_that_is_not_numbers_is_refused_by_name():
+    """A string (or a bool array) went into jnp.asarray and failed with JAX's TypeError
+    ('is not a valid JAX array type'), which names no parameter."""
+    from jaxflex.analysis import signal_metrics, welch
+
+    for f in (lambda s: signal_metrics(s, 1e-3), lambda s: settling_time(s, 1e-3), lambda s: ise(s, 1e-3)):
+        with pytest.raises(ValueError, match=r"s must be a real number or an array of real numbers; got 'abc'"):
+            f("abc")
+    with pytest.raises(ValueError, match=r"x must be a real number or an array of real numbers; got 'abc'"):
+        welch("abc", 1000.0)
+    with pytest.raises(ValueError, match=r"x must be a real number or an array of real numbers"):
+        welch(np.ones(300, bool), 1000.0)
+    np.testing.assert_allclose(ise([1, 2], 1e-3), 5e-3)  # integers are numbers

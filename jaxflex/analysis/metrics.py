@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from jaxflex import checks
 from jaxflex.controllers.base import is_concrete
 
 DIVERGENCE_THRESHOLD = 1e6
@@ -32,6 +33,8 @@ ROUNDOFF_FLOOR_EPS = 16
 
 def _as_signal(s: ArrayLike, name: str = "s") -> jax.Array:
     """``s`` as a floating ``[T]`` or ``[T, n]`` array (integers -> JAX's default float)."""
+    if is_concrete(s):
+        checks.real_array(name, s)  # a string or a bool array is refused by name, not by JAX's TypeError
     s = jnp.asarray(s)
     if s.ndim not in (1, 2) or s.shape[0] < 1:
         raise ValueError(f"{name} must have shape [T] or [T, n] with T >= 1 (time first); got shape {s.shape}")

@@ -226,6 +226,8 @@ def welch(
         if (window, nperseg, noverlap, detrend) != ("hann", 256, None, "constant"):
             raise ValueError("pass either settings= or window/nperseg/noverlap/detrend keywords, not both")
         window, nperseg, noverlap, detrend = settings
+    if is_concrete(x):
+        checks.real_array("x", x)  # a string is refused by name, not by JAX's TypeError
     x = jnp.asarray(x)
     noverlap = _validate(x.shape, fs, window, nperseg, noverlap, detrend)
     dtype = _float_dtype(x)
