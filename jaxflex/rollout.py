@@ -127,9 +127,10 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
         raise ValueError(f"scenario.noise must have shape ({steps}, 2); got {scenario.noise.shape}")
     dtype = plant.Ad.dtype
     for name in ("x0", "force", "noise"):
-        if getattr(scenario, name).dtype != dtype:
-            raise ValueError(f"scenario.{name} is {getattr(scenario, name).dtype} but the plant is {dtype}: build both in one dtype")
-        if is_concrete(getattr(scenario, name)) and not np.all(np.isfinite(np.asarray(getattr(scenario, name)))):  # traced ones (vmap, jit) run NaN and report themselves diverged
+        value = getattr(scenario, name)
+        if value.dtype != dtype:
+            raise ValueError(f"scenario.{name} is {value.dtype} but the plant is {dtype}: build both in one dtype")
+        if is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):  # traced ones (vmap, jit) run NaN and report themselves diverged
             raise ValueError(f"scenario.{name} must be finite; got inf or NaN")
     for path, leaf in jax.tree_util.tree_leaves_with_path(params):
         leaf_dtype = getattr(leaf, "dtype", None)

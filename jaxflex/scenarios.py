@@ -295,7 +295,7 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
       Scenario with fields [n, ...]; ``plant`` is None unless the spec perturbs the plant.
     """
     checks.instance("spec", spec, ScenarioSpec, "build one with ScenarioSpec(...) or ScenarioSpec.from_mapping({...})")
-    if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or (key.dtype == jnp.uint32 and key.shape == (2,)))):
+    if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or (key.dtype == jnp.uint32 and key.ndim == 1))):
         raise ValueError(f"key must be a JAX PRNG key (jax.random.key(seed)); got {type(key).__name__} {key!r}")
     n = checks.integer("n (number of scenarios)", n)
     n_modes = beam.check_n_modes(n_modes)
