@@ -325,6 +325,23 @@ def test_gradient_finite_where_no_rule_fires(defuzz):
     assert np.isfinite(float(grads_e))
 
 
+@pytest.mark.parametrize("defuzz, temperature", [("centroid", 0.0), ("singleton", 0.0), ("centroid", 0.02)])
+def test_a_nan_measurement_gives_a_nan_torque_and_a_diverged_run(defuzz, temperature):
+    """A NaN input made every rule strength NaN, and the no-rule guard (den > 0) turned the
+    ratio into 0: the loop ran open loop under jit, reporting itself not diverged."""
+    import jaxflex as jf
+
+    params = fuzzy_params()
+    for e, e_dot in ((jnp.nan, 0.0), (0.1, jnp.nan)):
+        assert np.isnan(float(fuzzy_surface(params, e, e_dot, defuzz=defuzz, temperature=temperature)))
+    plant = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3)
+    scenario = jf.paper_scenario(plant, horizon_s=0.2)
+    controller = fuzzy(defuzz=defuzz, temperature=temperature)
+    run = jax.jit(lambda noise: jf.rollout(plant, controller, params, scenario._replace(noise=noise), output="metrics"))
+    assert not bool(run(scenario.noise).diverged)
+    assert bool(run(scenario.noise.at[50, 0].set(jnp.nan)).diverged)
+
+
 # -- 7. validation -----------------------------------------------------------------------------
 
 

@@ -453,8 +453,10 @@ def _membership_list(x: jax.typing.ArrayLike, c: jax.Array, t: float) -> list[ja
 
 
 def _safe_ratio(num: jax.Array, den: jax.Array) -> jax.Array:
-    """``num / den`` where ``den > 0``, else 0; NaN-free gradients (double where)."""
-    fires = den > 0
+    """``num / den`` where ``den != 0`` (it is >= 0: where a rule fires), else 0; NaN-free
+    gradients (double where). A NaN ``den`` (a NaN measurement) gives NaN, not 0: the run
+    then reports itself diverged instead of running open loop."""
+    fires = den != 0
     safe_den = jnp.where(fires, den, jnp.ones_like(den))
     return jnp.where(fires, num / safe_den, jnp.zeros_like(num))
 
