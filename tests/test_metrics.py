@@ -138,6 +138,10 @@ def test_diverged():
     y[3, 0] = 5.0
     assert bool(diverged(y, threshold=4.0)) and not bool(diverged(y, threshold=5.0))
     assert bool(jax.jit(diverged)(jnp.array([0.0, jnp.nan])))
+    assert not bool(diverged(y, threshold=np.inf)) and bool(jax.jit(diverged)(y, 4.0))  # traced: not checked
+    for bad in (-1.0, 0.0, np.nan, "1e6", [1.0, 2.0]):  # a bound <= 0 called every run diverged
+        with pytest.raises(ValueError, match="threshold must be a (real )?number"):
+            diverged(x, threshold=bad)
 
 
 def test_samples_at():

@@ -173,11 +173,16 @@ def diverged(x: ArrayLike, threshold: ArrayLike = DIVERGENCE_THRESHOLD) -> jax.A
 
     Args:
       x: array of any shape, e.g. a ``[T, n_x]`` state trajectory.
-      threshold: bound on ``|x|`` (units of ``x``), default ``1e6``.
+      threshold: bound on ``|x|`` (units of ``x``), a number > 0 (inf: non-finite entries
+        only), default ``1e6``.
 
     Returns:
       scalar bool.
     """
+    if is_concrete(threshold):
+        arr = checks.real_array("threshold", threshold, scalar=True)
+        if arr.ndim != 0 or not arr > 0:  # a bound <= 0 called every run diverged
+            raise ValueError(f"threshold must be a number > 0 (a bound on |x|; inf for non-finite entries only); got {threshold!r}")
     x = jnp.asarray(x)
     return jnp.logical_or(~jnp.all(jnp.isfinite(x)), jnp.any(jnp.abs(x) > threshold))
 
