@@ -286,18 +286,18 @@ def run_montecarlo(
     # The folder is checked before any sampling or compiling.
     if os.path.exists(meta_path):
         if not resume:
-            raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume to continue it, or choose another --out")
+            raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume (resume=True) to continue it, or choose another --out (out_dir)")
         _check_resume(meta_path, meta, config.n_scenarios)
         # summary.json is rewritten at the end; until then the previous one would describe
         # another set of chunks.
         if os.path.exists(summary_path):
             os.remove(summary_path)
     elif resume:
-        raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no {META}); leave out --resume to start one")
+        raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no {META}); leave out --resume (resume=False) to start one")
     elif os.path.isdir(chunks_dir) and os.listdir(chunks_dir):
         # Chunks without the metadata that says which configuration made them: a new run
         # would take them as its own.
-        raise ValueError(f"{chunks_dir} holds chunk files but {out_dir} has no {META} to say which run wrote them; choose another --out")
+        raise ValueError(f"{chunks_dir} holds chunk files but {out_dir} has no {META} to say which run wrote them; choose another --out (out_dir)")
     os.makedirs(chunks_dir, exist_ok=True)
     runner = _Runner(config)
 

@@ -127,7 +127,7 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     with pytest.raises(KeyboardInterrupt):
         run_montecarlo(config, tmp_path / "cut", progress=False, figures=False, on_chunk=interrupt)
     assert sorted(os.listdir(tmp_path / "cut" / "chunks")) == [f"chunk_{i:06d}.npz" for i in range(3)]
-    with pytest.raises(ValueError, match="pass --resume"):
+    with pytest.raises(ValueError, match=r"pass --resume \(resume=True\) to continue it, or choose another --out \(out_dir\)"):
         run_montecarlo(config, tmp_path / "cut", progress=False)
     resumed = run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
     assert resumed["metrics"] == full["metrics"] and resumed["n_scenarios"] == 70

@@ -289,7 +289,7 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
         tune(cfg, tmp_path / "cut", progress=False, on_step=interrupt)
     with np.load(tmp_path / "cut" / CHECKPOINT) as data:
         assert json.loads(bytes(data["meta"]).decode())["step"] == 4  # lost at most one interval
-    with pytest.raises(ValueError, match="pass --resume"):
+    with pytest.raises(ValueError, match=r"pass --resume \(resume=True\) to continue it, or choose another --out \(out_dir\)"):
         tune(cfg, tmp_path / "cut", progress=False)  # never overwrite a run silently
     resumed = tune(cfg, tmp_path / "cut", resume=True, progress=False)
     assert resumed["step"] == full["step"] == 30

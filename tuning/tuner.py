@@ -333,7 +333,7 @@ def tune(
     fingerprint = config.fingerprint()
     # The folder and the checkpoint's configuration are checked before any sampling or compiling.
     if not resume and os.path.exists(ckpt_path):
-        raise ValueError(f"{out_dir} already holds a tuning run ({CHECKPOINT}): pass --resume to continue it, or choose another --out")
+        raise ValueError(f"{out_dir} already holds a tuning run ({CHECKPOINT}): pass --resume (resume=True) to continue it, or choose another --out (out_dir)")
     if resume:
         if not os.path.exists(ckpt_path):
             raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
