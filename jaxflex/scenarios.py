@@ -161,6 +161,18 @@ def _float_dtype(dtype: Any) -> np.dtype:
     return dtype
 
 
+def _is_raw_key(key: jax.Array) -> bool:
+    """Whether ``key`` is one legacy ``jax.random.PRNGKey`` of the default implementation
+    (2 words for threefry, 4 for rbg)."""
+    if key.dtype != jnp.uint32 or key.ndim != 1:
+        return False
+    try:
+        jax.random.wrap_key_data(key)
+    except TypeError:
+        return False
+    return True
+
+
 def _paper_x0(n_modes: int, reading: str = "printed") -> np.ndarray:
     """The paper's initial state for ``n_modes`` modes, in jaxflex's state order (see
     ``paper_scenario``)."""
@@ -295,7 +307,7 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
       Scenario with fields [n, ...]; ``plant`` is None unless the spec perturbs the plant.
     """
     checks.instance("spec", spec, ScenarioSpec, "build one with ScenarioSpec(...) or ScenarioSpec.from_mapping({...})")
-    if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or (key.dtype == jnp.uint32 and key.ndim == 1))):
+    if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or _is_raw_key(key))):
         raise ValueError(f"key must be a JAX PRNG key (jax.random.key(seed)); got {type(key).__name__} {key!r}")
     n = checks.integer("n (number of scenarios)", n)
     n_modes = beam.check_n_modes(n_modes)
