@@ -408,7 +408,7 @@ def tune(
                 if n == 0 and grad_norm == 0.0:  # no update could ever move them
                     spec = config.scenarios
                     raise ValueError(f"the objective's gradient is exactly zero at the starting parameters, so no update can move them: over the "
-                                     f"horizon of {spec.horizon_s:g} s ({round(spec.horizon_s / spec.dt)} samples of dt = {spec.dt:g} s) the objective does not "
+                                     f"horizon of {spec.horizon_s:g} s ({spec.steps} samples of dt = {spec.dt:g} s) the objective does not "
                                      "depend on them (too short a horizon for the controller's torque to reach what [objective] weighs, or "
                                      "scenarios with nothing to respond to); lengthen [scenarios] horizon_s, or check [scenarios] and [objective]")
                 state["raw"], state["opt_state"], state["step"] = raw, opt_state, n + 1
