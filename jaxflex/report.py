@@ -38,7 +38,6 @@ HORIZON_S = 3.0
 SAMPLE_TIMES_S = (0.1, 0.5, 1.0)
 RUNS = ("open_loop", "dfs", "fuzzy")
 TUNED_CONTROLLERS = ("dfs", "fuzzy", "dfs+fuzzy")
-SIGNALS = ("q1", "tip_deflection_m", "hub_angle_rad")
 
 # What the paper reports (NOTES.md, "Results the paper reports").
 PAPER = {
