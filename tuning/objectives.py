@@ -45,7 +45,8 @@ class ObjectiveSpec:
       cvar_level: CVaR level in [0, 1): 0.9 averages the worst 10 % of scenarios.
       worst_temperature: temperature of the smooth worst case (> 0, in units of the
         normalised loss).
-      stability_weight: weight of the DFS stability penalty (>= 0).
+      stability_weight: weight of the DFS stability penalty (>= 0); it acts on the
+        controller "dfs" only (a dfs+fuzzy loop is nonlinear: no loop matrix, no penalty).
       min_decay_rate: the penalty acts when the slowest non-structural mode of the sampled
         loop decays slower than this rate (1/s, >= 0).
     """

@@ -200,7 +200,8 @@ class Problem:
         return jax.vmap(one)(batch)
 
     def log_radius(self, raw: Any) -> jax.Array | None:
-        """Log spectral radius of the nominal sampled DFS loop (None without DFS)."""
+        """Log spectral radius of the nominal sampled DFS loop; None unless the controller is
+        DFS alone (with a fuzzy part the loop is nonlinear: no loop matrix to penalise)."""
         if self.config.controller != "dfs":
             return None  # a fuzzy part is nonlinear: no sampled-loop matrix
         return self.dfs_log_radius(self.tc.to_physical(raw))
@@ -485,7 +486,6 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
     elif problem.config.controller == "dfs+fuzzy":
         dfs_params = physical[0]
     if dfs_params is not None:
-
         log_rho = float(problem.dfs_log_radius(dfs_params))
         paper_log_rho = float(problem.dfs_log_radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0]))
         out["stability"] = {
