@@ -4,6 +4,7 @@ the previous file untouched."""
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import os
@@ -91,6 +92,21 @@ def to_jsonable(value: Any, *, finite: bool = True) -> Any:
     if isinstance(value, float) and finite:
         return value if math.isfinite(value) else None
     return value
+
+
+def digest(fields: Mapping[str, Any]) -> str:
+    """A run's fingerprint: a short hash of its JSON-able configuration ``fields`` (key order
+    aside), recorded in its folder so that a resume with another configuration is refused."""
+    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def changed_fields(before: Any, now: Mapping[str, Any]) -> str:
+    """What a refused resume names: ``"changed: seed, n_modes"``, the keys of ``now`` whose
+    values differ from those recorded in ``before`` (a folder's configuration, as read back),
+    or ``"the configuration changed"`` when no key both share differs."""
+    before = before if isinstance(before, Mapping) else {}
+    changed = sorted(k for k in now if k in before and before[k] != now[k])
+    return f"changed: {', '.join(changed)}" if changed else "the configuration changed"
 
 
 def write_json(path: str | os.PathLike, data: Any) -> None:

@@ -16,7 +16,6 @@ Across hosts, start the same command on every host after ``jax.distributed.initi
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import numbers
@@ -145,14 +144,10 @@ class MCConfig:
 
     def fingerprint(self) -> str:
         """Hash of ``fingerprint_fields``."""
-        return _digest(self.fingerprint_fields())
+        return fileio.digest(self.fingerprint_fields())
 
 
 _SUMMARY_ONLY = ("percentiles", "band_scenarios")  # read by the summary and the figures only
-
-
-def _digest(fields: dict[str, Any]) -> str:
-    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def controller_and_params(name: str, params: dict, dt: float, capacity: int, delay: str = "linear", pade_order: int = 8, temperature: float = 0.0) -> tuple[Controller, Any]:
@@ -376,11 +371,9 @@ def _check_resume(meta_path: str, meta: dict[str, Any], n_scenarios: int) -> Non
         raise ValueError(f"--resume: cannot read {meta_path} ({err}); start a new run in another --out") from None
     before = previous.get("config", {}) if isinstance(previous, dict) and isinstance(previous.get("config"), dict) else {}
     # a folder written while _SUMMARY_ONLY still counted has them in its config and its hash
-    same = isinstance(previous, dict) and meta["fingerprint"] in (previous.get("fingerprint"), _digest({k: v for k, v in before.items() if k not in _SUMMARY_ONLY}))
+    same = isinstance(previous, dict) and meta["fingerprint"] in (previous.get("fingerprint"), fileio.digest({k: v for k, v in before.items() if k not in _SUMMARY_ONLY}))
     if not same:
-        changed = sorted(k for k in meta["config"] if k in before and before[k] != meta["config"][k])
-        what = f"changed: {', '.join(changed)}" if changed else "the configuration changed"
-        raise ValueError(f"--resume: {meta_path} was written by a run with another configuration ({what})")
+        raise ValueError(f"--resume: {meta_path} was written by a run with another configuration ({fileio.changed_fields(before, meta['config'])})")
     if previous.get("chunk") != meta["chunk"]:
         chunk = previous.get("chunk")
         fix = f"--chunk {chunk}" if not isinstance(chunk, int) or n_scenarios >= chunk else f"--scenarios {chunk} or more and --chunk {chunk}"

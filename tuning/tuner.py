@@ -10,7 +10,6 @@ every step is deterministic the result equals an uninterrupted run with the same
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import io
 import json
 import math
@@ -136,7 +135,7 @@ class TuneConfig:
 
     def fingerprint(self) -> str:
         """Hash of ``fingerprint_fields``."""
-        return hashlib.sha256(json.dumps(self.fingerprint_fields(), sort_keys=True).encode()).hexdigest()[:16]
+        return fileio.digest(self.fingerprint_fields())
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], **overrides: Any) -> "TuneConfig":
@@ -340,9 +339,7 @@ def tune(
             raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
         meta = _load_checkpoint(ckpt_path)
         if meta["fingerprint"] != fingerprint:
-            before, now = meta.get("config", {}), config.fingerprint_fields()
-            changed = sorted(k for k in now if k in before and before[k] != now[k])
-            what = f"changed: {', '.join(changed)}" if changed else "the configuration changed"
+            what = fileio.changed_fields(meta.get("config"), config.fingerprint_fields())
             raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration ({what}; fingerprint {meta['fingerprint']} != {fingerprint})")
         if config.steps < meta["step"]:
             raise ValueError(f"--resume: the run in {out_dir} has taken {meta['step']} steps already; steps = {config.steps} cannot undo them (pass --steps {meta['step']} or more)")
