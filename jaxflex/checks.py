@@ -63,7 +63,8 @@ def instance(name: str, value: Any, expected: type | tuple[type, ...], build: st
         if callable(value) and not isinstance(value, type) and hasattr(value, "__name__"):
             what = f"the function {value.__name__} itself: call it to build one"
         names = " or ".join(t.__name__ for t in (expected if isinstance(expected, tuple) else (expected,)))
-        raise ValueError(f"{name} must be a {names} ({build}); got {what}")
+        article = "an" if names[0] in "AEIOU" else "a"
+        raise ValueError(f"{name} must be {article} {names} ({build}); got {what}")
     return value
 
 

@@ -103,8 +103,7 @@ class MCConfig:
         if not isinstance(self.params, dict) or not all(isinstance(k, str) for k in self.params):
             raise ValueError(f"params must be a dict of parameter values by name; got {self.params!r}")
         param_values(self.params)
-        if not isinstance(self.scenarios, ScenarioSpec):
-            raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")
+        checks.instance("scenarios", self.scenarios, ScenarioSpec, "build one with ScenarioSpec(...) or ScenarioSpec.from_mapping({...})")
         # A NumPy or JAX array is a sequence of numbers to a user (its elements, not Python ones).
         values = self.percentiles.tolist() if isinstance(self.percentiles, (np.ndarray, jax.Array)) else self.percentiles
         if (

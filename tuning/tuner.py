@@ -105,10 +105,8 @@ class TuneConfig:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", check_temperature(self.fuzzy_temperature, "fuzzy_temperature"))
         check_method(self.method)
-        if not isinstance(self.scenarios, ScenarioSpec):
-            raise ValueError(f"scenarios must be a ScenarioSpec; got {self.scenarios!r}")
-        if not isinstance(self.objective, ObjectiveSpec):
-            raise ValueError(f"objective must be an ObjectiveSpec; got {self.objective!r}")
+        checks.instance("scenarios", self.scenarios, ScenarioSpec, "build one with ScenarioSpec(...) or ScenarioSpec.from_mapping({...})")
+        checks.instance("objective", self.objective, ObjectiveSpec, "build one with ObjectiveSpec(...) or ObjectiveSpec.from_mapping({...})")
         object.__setattr__(self, "beam", beam.plain_params(self.beam))
         allowed = PARAMETERS[self.controller]
         if not isinstance(self.initial, Mapping):
