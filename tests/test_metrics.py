@@ -106,6 +106,11 @@ def test_settling_time_columns_and_validation():
         settling_time(s, DT, final_fraction=0.0)
     with pytest.raises(ValueError, match="dt must be finite and > 0"):
         settling_time(s, -DT)
+    for bad in ("1e-3", None, True):  # a string or a bool is not a sample time, though float() takes it
+        with pytest.raises(ValueError, match=r"dt must be a real number; got"):
+            settling_time(s, bad)
+        with pytest.raises(ValueError, match=r"dt must be a real number; got"):
+            ise(s, bad)
     with pytest.raises(ValueError, match="band"):
         settling_time(s, DT, band=0.0)
 

@@ -44,11 +44,11 @@ def _as_signal(s: ArrayLike, name: str = "s") -> jax.Array:
 
 
 def _as_dt(dt: ArrayLike, dtype: Any) -> jax.Array:
-    """``dt`` (s) as a scalar of ``dtype``; checked finite and > 0 when concrete."""
+    """``dt`` (s) as a scalar of ``dtype``; checked a finite real number > 0 when concrete."""
     if jnp.ndim(dt) != 0:
         raise ValueError(f"dt must be a scalar (s); got shape {jnp.shape(dt)}")
     if is_concrete(dt):
-        v = float(dt)
+        v = float(checks.real_array("dt", dt, scalar=True))
         if not (math.isfinite(v) and v > 0):
             raise ValueError(f"dt must be finite and > 0 (s); got {v}")
     return jnp.asarray(dt, dtype)
