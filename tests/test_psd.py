@@ -231,6 +231,9 @@ def test_validation_errors():
     for bad_fs in (0.0, -1.0, np.inf, np.nan):
         with pytest.raises(ValueError, match=r"fs must be finite and > 0"):
             welch(x, bad_fs, nperseg=32)
+    for bad_fs in ("1000", True, None):  # float() takes the first two, as 1 kHz and 1 Hz
+        with pytest.raises(ValueError, match=r"fs must be a real number; got"):
+            welch(x, bad_fs, nperseg=32)
     with pytest.raises(ValueError, match=r"\[T\] or \[T, n\]"):
         welch(jnp.ones((10, 2, 2)), FS, nperseg=4)
 

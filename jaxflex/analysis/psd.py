@@ -151,7 +151,7 @@ def _validate(x_shape: tuple[int, ...], fs: Any, window: Any, nperseg: Any, nove
     if not any(detrend is d for d in (None, False)) and detrend not in ("constant", "linear"):
         raise ValueError(f"detrend must be one of 'constant', 'linear', None or False; got {detrend!r}")
     if is_concrete(fs):
-        fs_arr = np.asarray(fs)
+        fs_arr = checks.real_array("fs", fs, scalar=True)
         if fs_arr.ndim != 0:
             raise ValueError(f"fs must be a scalar (Hz); got shape {fs_arr.shape}")
         fs_val = float(fs_arr)
