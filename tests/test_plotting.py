@@ -1,0 +1,41 @@
+"""What the figures show: labels, limits, texts and styles of the matplotlib objects."""
+
+import numpy as np
+import pytest
+
+from jaxflex import beam, plotting
+from jaxflex.scenarios import ScenarioSpec, perturbed_params
+
+
+@pytest.fixture(autouse=True)
+def _close_figures():
+    yield
+    plotting.plt.close("all")
+
+
+def test_tune_psd_marks_the_modes_of_the_scenarios_own_plant(monkeypatch, tmp_path):
+    # With plant uncertainty in the scenarios, a held-out arm's peaks sit away from the
+    # nominal frequencies: the lines labelled "model modes" were the nominal arm's.
+    from tuning import run
+    from tuning.tuner import Problem, TuneConfig
+
+    config = TuneConfig(controller="dfs", n_scenarios=2, n_heldout=2, scenarios=ScenarioSpec(horizon_s=0.05, youngs_modulus_rel=0.4, payload_max_kg=0.1))
+    problem = Problem(config)
+    marked = []
+    monkeypatch.setattr(plotting, "psds", lambda freqs, runs, modes, *a, **k: marked.append(np.asarray(modes)) or plotting.plt.figure())
+    monkeypatch.setattr(plotting, "responses", lambda *a, **k: plotting.plt.figure())
+    state = {"problem": problem, "history": [{"step": 0, "loss": 1.0, "val_objective": 1.0}], "best_step": 0, "best_raw": problem.initial_raw}
+    run._figures(state, str(tmp_path), 1.0)
+    assert len(marked) == 3  # the paper scenario (nominal plant), then held-out 1 and 2
+    np.testing.assert_allclose(marked[0], problem.freqs_hz)
+    for i, modes in enumerate(marked[1:]):
+        plant = perturbed_params(problem.beam, jax_index(problem.heldout.plant, i))
+        expected = np.asarray(beam.natural_frequencies_hz(plant, config.n_modes))
+        assert np.max(np.abs(expected / np.asarray(problem.freqs_hz) - 1)) > 0.01  # the draw moved them
+        np.testing.assert_allclose(modes, expected, rtol=1e-6)
+
+
+def jax_index(tree, i):
+    import jax
+
+    return jax.tree.map(lambda a: a[i], tree)
