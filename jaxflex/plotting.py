@@ -19,18 +19,36 @@ import numpy as np  # noqa: E402
 
 from jaxflex import fileio  # noqa: E402
 
-_STYLES = {"open_loop": dict(color="0.45", ls="--", lw=1.0), "dfs": dict(color="C0", lw=1.2), "fuzzy": dict(color="C3", lw=1.2)}
+_STYLES = {
+    "open_loop": dict(color="0.45", ls="--", lw=1.0),
+    "dfs": dict(color="C0", lw=1.2),
+    "fuzzy": dict(color="C3", lw=1.2),
+    "dfs+fuzzy": dict(color="C4", lw=1.2),
+}
 LABELS = {"open_loop": "Open loop", "dfs": "DFS", "fuzzy": "PD-type fuzzy", "dfs+fuzzy": "DFS + fuzzy"}
-# Runs beside the paper's (a tuned one, "paper gains" and "tuned" of jaxflex tune), in turn:
-# never the paper's colours C0/C3 of another run in the same figure.
-_OTHER_STYLES = (dict(color="C2", lw=1.4, ls="-."), dict(color="C1", lw=1.2), dict(color="C4", lw=1.2, ls=":"), dict(color="C5", lw=1.2, ls="--"))
+# Tuned gains, in every figure that has them ("tuned" in jaxflex tune's, "tuned <controller>"
+# in jaxflex reproduce --params'): one look, so that a colour means the same in both.
+TUNED_STYLE = dict(color="C2", lw=1.4, ls="-.")
+# Any other run, in turn: never a colour another run of the same figure already has.
+_OTHER_STYLES = (dict(color="C1", lw=1.2), dict(color="C5", lw=1.2, ls="--"), dict(color="C6", lw=1.2, ls=":"), dict(color="C8", lw=1.2, ls="-."))
 
 
-def _styles(runs: Sequence[str]) -> dict[str, dict]:
-    """A distinct style per run of one figure: the paper's runs keep theirs, the others take
-    ``_OTHER_STYLES`` in turn (then matplotlib's defaults)."""
-    others = iter(_OTHER_STYLES)
-    return {run: _STYLES[run] if run in _STYLES else next(others, {}) for run in runs}
+def _styles(runs: Sequence[str], style_of: Mapping[str, str] | None = None) -> dict[str, dict]:
+    """A distinct style per run of one figure: the paper's controllers keep theirs (a run
+    ``style_of`` names takes that run's: "paper gains" of a tuning run takes its controller's),
+    tuned gains ``TUNED_STYLE``, the others ``_OTHER_STYLES`` in turn (then matplotlib's
+    defaults)."""
+    style_of = style_of or {}
+    fixed = {}
+    for run in runs:
+        key = style_of.get(run, run)
+        if key in _STYLES:
+            fixed[run] = _STYLES[key]
+        elif key == "tuned" or key.startswith("tuned "):
+            fixed[run] = TUNED_STYLE
+    taken = {style["color"] for style in fixed.values()}
+    others = iter(style for style in _OTHER_STYLES if style["color"] not in taken)
+    return {run: fixed[run] if run in fixed else next(others, {}) for run in runs}
 
 
 def _finite_prefix(values: np.ndarray) -> int:
@@ -38,7 +56,7 @@ def _finite_prefix(values: np.ndarray) -> int:
     return int(np.argmax(bad)) if bad.any() else values.shape[0]
 
 
-def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signals: Sequence[tuple[str, str]], diverged: Mapping[str, bool], title: str) -> plt.Figure:
+def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signals: Sequence[tuple[str, str]], diverged: Mapping[str, bool], title: str, style_of: Mapping[str, str] | None = None) -> plt.Figure:
     """Time responses, one subplot per signal.
 
     Args:
@@ -47,9 +65,10 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
       signals: (signal name, y-axis label) pairs, one subplot each.
       diverged: run name -> whether the run diverged.
       title: figure title.
+      style_of: run name -> the run (controller) whose line style it takes.
     """
     fig, axes = plt.subplots(len(signals), 1, figsize=(7.5, 2.6 * len(signals)), sharex=True, squeeze=False)
-    styles = _styles(list(runs))
+    styles = _styles(list(runs), style_of)
     for ax, (name, ylabel) in zip(axes[:, 0], signals):
         values = {run: np.asarray(sig[name]) for run, sig in runs.items()}
         ends = {run: _finite_prefix(v) for run, v in values.items()}
@@ -79,15 +98,15 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
     return fig
 
 
-def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Sequence[float], ylabel: str, title: str, fmax: float | None = None) -> plt.Figure:
+def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Sequence[float], ylabel: str, title: str, fmax: float | None = None, style_of: Mapping[str, str] | None = None) -> plt.Figure:
     """Power spectral densities on a log scale with the model's modal frequencies marked, up to
     ``fmax`` (Hz; default: 150 Hz or 1.5 times the highest mode, whichever is higher, within
-    the estimate's frequencies)."""
+    the estimate's frequencies). ``style_of``: run name -> the run whose line style it takes."""
     if fmax is None:
         fmax = min(float(np.max(freqs)), max(150.0, 1.5 * max(mode_freqs_hz, default=0.0)))
     fig, ax = plt.subplots(figsize=(7.5, 3.6))
     keep = freqs <= fmax
-    styles = _styles(list(runs))
+    styles = _styles(list(runs), style_of)
     for run, psd in runs.items():
         psd = np.asarray(psd)
         if np.all(np.isfinite(psd)):

@@ -39,3 +39,24 @@ def jax_index(tree, i):
     import jax
 
     return jax.tree.map(lambda a: a[i], tree)
+
+
+@pytest.mark.parametrize("controller", ["dfs", "fuzzy", "dfs+fuzzy"])
+def test_a_run_looks_the_same_in_tune_and_reproduce_figures(controller):
+    # jaxflex tune drew "paper gains" green dash-dot, the look of the *tuned* run in
+    # reproduce --params' fig_tuned_response.png, and DFS's paper gains were not DFS's blue.
+    t = np.linspace(0.0, 1.0, 50)
+    y = {"tip": np.exp(-t)}
+
+    def looks(fig):
+        return {line.get_label(): (line.get_color(), line.get_linestyle()) for line in fig.axes[0].get_lines()}
+
+    tune = looks(plotting.responses(t, {"paper gains": y, "tuned": y}, [("tip", "Tip (m)")], {}, "t", style_of={"paper gains": controller}))
+    base = "dfs" if controller == "dfs" else "fuzzy"
+    repro = looks(plotting.responses(t, {"open_loop": y, base: y, f"tuned {controller}": y}, [("tip", "Tip (m)")], {}, "t"))
+    assert tune["tuned"] == repro[f"tuned {controller}"]
+    if controller != "dfs+fuzzy":
+        assert tune["paper gains"] == repro[plotting.LABELS[base]]
+    assert len(set(tune.values())) == 2 and len(set(repro.values())) == 3
+    psd = plotting.psds(t, {"paper gains": y["tip"], "tuned": y["tip"]}, (), "y", "t", style_of={"paper gains": controller})
+    assert looks(psd) == tune

@@ -40,7 +40,7 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
         t = np.asarray(trajs["tuned"].t)
         runs = {name: {"tip": np.asarray(tr.z[:, 1]), "hub": np.asarray(tr.z[:, 0])} for name, tr in trajs.items()}
         div = {name: bool(~np.all(np.isfinite(np.asarray(tr.x)))) for name, tr in trajs.items()}
-        fig = plotting.responses(t, runs, [("tip", "Tip deflection (m)"), ("hub", "Hub angle (rad)")], div, f"{config.controller}: paper vs tuned gains, {label}")
+        fig = plotting.responses(t, runs, [("tip", "Tip deflection (m)"), ("hub", "Hub angle (rad)")], div, f"{config.controller}: paper vs tuned gains, {label}", style_of={"paper gains": config.controller})
         name = f"response_{idx}.png"
         plotting.save(fig, os.path.join(out_dir, name))
         written.append(name)
@@ -51,7 +51,7 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
         # the modes of the plant this scenario ran on: with plant uncertainty in the scenarios a
         # held-out arm's peaks sit away from the nominal arm's frequencies
         modes_hz = problem.freqs_hz if scenario.plant is None else beam.natural_frequencies_hz(perturbed_params(problem.beam, scenario.plant), config.n_modes)
-        fig = plotting.psds(freqs, psd, np.asarray(modes_hz), "PSD of tip deflection (m^2/Hz)", f"{config.controller}: paper vs tuned gains, {label}")
+        fig = plotting.psds(freqs, psd, np.asarray(modes_hz), "PSD of tip deflection (m^2/Hz)", f"{config.controller}: paper vs tuned gains, {label}", style_of={"paper gains": config.controller})
         name = f"psd_{idx}.png"
         plotting.save(fig, os.path.join(out_dir, name))
         written.append(name)
