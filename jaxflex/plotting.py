@@ -131,8 +131,9 @@ def reduction_bars(reductions: Mapping[str, Mapping[str, Sequence[float]]], pape
 
     Args:
       reductions: estimator label -> controller -> [n_modes] dB; None (a diverged run) draws
-        no bar.
-      paper: controller -> the paper's dB per mode, drawn as hatched bars.
+        no bar, and "diverged" where it would stand.
+      paper: controller -> the paper's dB per mode, drawn as hatched bars at the modes it
+        gives (its two; none at a higher model mode, where a flat outline read as 0 dB).
     """
     estimators = list(reductions)
     controllers = list(next(iter(reductions.values())))
@@ -140,15 +141,28 @@ def reduction_bars(reductions: Mapping[str, Mapping[str, Sequence[float]]], pape
     groups = [(c, m) for c in controllers for m in range(n_modes)]
     n_bars = len(estimators) + (1 if paper else 0)
     width = 0.8 / n_bars
-    fig, ax = plt.subplots(figsize=(9.0, 3.8))
+    # 9 inches hold the paper's 2 modes x 2 controllers; more modes widen the figure so the
+    # tick labels keep apart
+    fig, ax = plt.subplots(figsize=(max(9.0, 3.0 + 1.3 * len(groups)), 3.8))
     x = np.arange(len(groups))
     for i, est in enumerate(estimators):
         vals = np.array([np.nan if reductions[est][c][m] is None else reductions[est][c][m] for c, m in groups], float)
-        ax.bar(x + (i - (n_bars - 1) / 2) * width, np.nan_to_num(vals, nan=0.0), width, label=f"jaxflex, {est}")
+        pos = x + (i - (n_bars - 1) / 2) * width
+        ax.bar(pos, np.nan_to_num(vals, nan=0.0), width, label=f"jaxflex, {est}")
+        for xi in pos[np.isnan(vals)]:
+            ax.text(xi, 0.0, "diverged", rotation=90, ha="center", va="bottom", fontsize=7, color="0.3")
     if paper:
-        vals = [paper[c][m] if c in paper and m < len(paper[c]) else 0.0 for c, m in groups]
-        ax.bar(x + (n_bars - 1) / 2 * width, vals, width, label="paper", color="none", edgecolor="k", hatch="//")
-    ax.set_xticks(x, [f"{LABELS.get(c, c)}\nmode {m + 1}" for c, m in groups])
+        given = [(xi, paper[c][m]) for xi, (c, m) in zip(x, groups) if c in paper and m < len(paper[c]) and paper[c][m] is not None]
+        if given:
+            px, pv = zip(*given)
+            ax.bar(np.asarray(px) + (n_bars - 1) / 2 * width, pv, width, label="paper", color="none", edgecolor="k", hatch="//")
+    # the mode under each group, the controller once under its modes
+    ax.set_xticks(x, [f"mode {m + 1}" for _, m in groups])
+    for j, c in enumerate(controllers):
+        ax.annotate(LABELS.get(c, c), xy=(j * n_modes + (n_modes - 1) / 2, 0.0), xycoords=("data", "axes fraction"), xytext=(0, -20), textcoords="offset points", ha="center", va="top")
+        if j:
+            ax.axvline(j * n_modes - 0.5, color="0.6", lw=0.8)
+    ax.axhline(0.0, color="k", lw=0.6)
     ax.set_ylabel("Reduction (dB)")
     ax.set_title("Level of vibration reduction at the natural frequencies")
     ax.grid(alpha=0.3, axis="y")

@@ -60,3 +60,19 @@ def test_a_run_looks_the_same_in_tune_and_reproduce_figures(controller):
     assert len(set(tune.values())) == 2 and len(set(repro.values())) == 3
     psd = plotting.psds(t, {"paper gains": y["tip"], "tuned": y["tip"]}, (), "y", "t", style_of={"paper gains": controller})
     assert looks(psd) == tune
+
+
+def test_reduction_bars_with_more_modes_than_the_paper():
+    # jaxflex reproduce --modes 4: the "PD-type fuzzy\nmode N" tick labels ran into each
+    # other, and the paper's missing modes 3 and 4 were flat hatched outlines, read as 0 dB
+    red = {"hann-1024": {"dfs": [67.9, 79.9, 67.3, -16.5], "fuzzy": [86.2, 83.4, 65.9, None]}, "hann-256": {"dfs": [52.0, 53.0, 44.0, -11.0], "fuzzy": [42.0, 65.0, 52.0, 7.0]}}
+    fig = plotting.reduction_bars(red, {"dfs": [123.4, 66.9], "fuzzy": [102.2, 23.2]})
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    boxes = [label.get_window_extent() for label in ax.get_xticklabels() if label.get_text()]
+    boxes += [text.get_window_extent() for text in ax.texts if text.get_text() in ("DFS", "PD-type fuzzy")]
+    assert len(boxes) == 10
+    assert not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1 :])
+    paper = [p.get_height() for p in ax.patches if p.get_hatch()]
+    assert paper == [123.4, 66.9, 102.2, 23.2]
+    assert [text.get_text() for text in ax.texts].count("diverged") == 1
