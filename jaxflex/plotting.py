@@ -221,7 +221,11 @@ def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val:
 
 def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title: str, bins: int = 50) -> plt.Figure:
     """One histogram per metric (non-finite values left out and counted in the title), the
-    metric's ``labels`` entry (its definition and unit) under it."""
+    metric's ``labels`` entry (its definition and unit) under it. Positive values spanning
+    three decades or more (the ISE and effort of runs near instability) get log-spaced bins on
+    a log axis: linear bins put nearly every run into the first. Values all equal get a bin
+    around that value (matplotlib's default spans it +-0.5, so 2e-3 m read as 0), and a panel
+    with no finite value says so."""
     names = list(data)
     cols = 3
     rows = -(-len(names) // cols)
@@ -229,9 +233,23 @@ def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title:
     for ax, name in zip(axes.ravel(), names):
         values = np.asarray(data[name], float)
         finite = values[np.isfinite(values)]
+        head = f"{name} ({values.size - finite.size} non-finite)" if finite.size < values.size else name
         if finite.size:
-            ax.hist(finite, bins=bins, color="C0", alpha=0.8)
-        ax.set_title(f"{name} ({values.size - finite.size} non-finite)" if finite.size < values.size else name, fontsize=9)
+            lo, hi = float(finite.min()), float(finite.max())
+            if lo > 0 and hi >= 1e3 * lo:
+                ax.hist(finite, bins=np.geomspace(lo, hi, bins + 1), color="C0", alpha=0.8)
+                ax.set_xscale("log")
+            elif lo == hi:
+                half = 0.05 * abs(lo) or 0.5
+                ax.hist(finite, bins=bins, range=(lo - half, lo + half), color="C0", alpha=0.8)
+                head += f": all {finite.size} = {lo:.4g}"
+            else:
+                ax.hist(finite, bins=bins, color="C0", alpha=0.8)
+        else:
+            ax.text(0.5, 0.5, "no finite value to draw", transform=ax.transAxes, ha="center", va="center", color="0.3")
+            ax.set_xticks([])
+            ax.set_yticks([])
+        ax.set_title(head, fontsize=9)
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(names) :]:
         ax.axis("off")
