@@ -284,10 +284,16 @@ def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[flo
             ax.plot(t, bands[i], color="C0", lw=1.0, label="median")
         elif p not in paired and 100 - p not in paired:
             ax.plot(t, bands[i], color="C1", lw=0.8, ls="--", label=f"p{p:g}")
+    if not np.any(np.isfinite(bands)):  # every scenario diverged: say so, over the horizon
+        ax.text(0.5, 0.5, "no scenario left to draw", transform=ax.transAxes, ha="center", va="center", color="0.3")
+        ax.get_yaxis().set_ticks([])
+    else:
+        ax.legend(fontsize=8)
+    if np.shape(t)[0] > 1:
+        ax.set_xlim(float(t[0]), float(t[-1]))
     ax.set_xlabel("Time (s)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return fig

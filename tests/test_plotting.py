@@ -92,3 +92,13 @@ def test_histograms_show_decades_equal_values_and_empty_metrics():
     assert 1.5e-3 < lo < 2e-3 < hi < 2.5e-3 and "all 16 = 0.002" in same.get_title()
     assert [t.get_text() for t in none.texts] == ["no finite value to draw"]
     assert fig._suptitle.get_text() == "dfs: 39 of 64 runs"
+
+
+def test_percentile_bands_when_every_scenario_diverged():
+    # montecarlo with dfs k = 130: all 64 diverged, and tip_bands.png showed a time axis of
+    # -0.04..0.04 s with a legend of bands that were not there
+    t = np.arange(3000) * 1e-3
+    fig = plotting.percentile_bands(t, np.full((3, t.size), np.nan), [5.0, 50.0, 95.0], "Tip deflection (m)", "0 of 64")
+    ax = fig.axes[0]
+    assert ax.get_xlim() == (0.0, t[-1])
+    assert [x.get_text() for x in ax.texts] == ["no scenario left to draw"] and ax.get_legend() is None
