@@ -391,12 +391,17 @@ def calibration(
         axes[2].plot(np.arange(1, len(measured_damping) + 1), 100.0 * np.asarray(measured_damping), "kx", ms=9, mew=2, label="measured")
         axes[2].plot(modes, 100.0 * np.asarray(model_damping), "o", ms=4, color="C0", label="model calibrated")
         axes[2].set_ylabel("Damping ratio (%)")
-        axes[2].set_ylim(bottom=0.0)
+        # from 0, with room above the highest ratio: the autoscaled top sat on it (ratios of
+        # 1 and 0.98 % drew their markers cut in half by the frame, under the legend)
+        shown = 100.0 * np.concatenate([np.asarray(measured_damping, float), np.asarray(model_damping, float)])
+        shown = shown[np.isfinite(shown)]
+        axes[2].set_ylim(0.0, 1.25 * float(shown.max()) if shown.size and shown.max() > 0 else None)
     for ax in axes:
         ax.set_xlabel("Mode")
         ax.set_xticks(modes)
+        ax.set_xlim(0.5, len(modes) + 0.5)  # the first and last modes' markers clear of the frame
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="best")
     fig.suptitle(title)
     fig.tight_layout()
     return fig

@@ -102,3 +102,17 @@ def test_percentile_bands_when_every_scenario_diverged():
     ax = fig.axes[0]
     assert ax.get_xlim() == (0.0, t[-1])
     assert [x.get_text() for x in ax.texts] == ["no scenario left to draw"] and ax.get_legend() is None
+
+
+def test_calibration_damping_markers_clear_of_the_frame_and_the_legend():
+    # calibrate --record: measured ratios 1 and 0.98 % sat on the top of the frame, half cut,
+    # with mode 2's under the legend
+    fig = plotting.calibration(np.array([13.31, 35.1]), np.array([13.32, 36.47]), np.array([13.31, 35.1]), "t", np.array([0.01, 0.009815]), np.array([0.01, 0.009815]))
+    fig.canvas.draw()
+    ax = fig.axes[2]
+    assert ax.get_ylim()[0] == 0.0 and ax.get_ylim()[1] >= 1.2
+    legend = ax.get_legend().get_window_extent()
+    points = ax.transData.transform([(1, 1.0), (2, 0.9815)])
+    assert not any(legend.contains(*p) for p in points)
+    for ax in fig.axes:  # the first and last modes' markers sat on the side frames, half cut
+        assert ax.get_xlim() == (0.5, 2.5)
