@@ -354,7 +354,7 @@ def stability_chart(
         handles.append(matplotlib.lines.Line2D([], [], color="k", marker="*", ms=10, ls="none", label=f"operating point (k = {point[0]:g}, tau = {1e3 * point[1]:g} ms)"))
     ax.set_xlabel("Gain k (N*m/rad)")
     ax.set_ylabel("Delay tau (ms)")
-    ax.set_title(title)
+    ax.set_title(textwrap.fill(title, 75))  # it lists the arm's modes: 6 of them ran off the figure
     ax.legend(handles=handles, fontsize=7, loc="upper right", framealpha=0.9)
     fig.tight_layout()
     return fig

@@ -116,3 +116,12 @@ def test_calibration_damping_markers_clear_of_the_frame_and_the_legend():
     assert not any(legend.contains(*p) for p in points)
     for ax in fig.axes:  # the first and last modes' markers sat on the side frames, half cut
         assert ax.get_xlim() == (0.5, 2.5)
+
+
+def test_stability_chart_title_with_many_modes_stays_on_the_figure():
+    title = "DFS stability: 0.9 m arm, 6 modes at 13.3, 36.5, 115, 241, 412, 628 Hz, sampled at 1 ms (zoh)"
+    k, tau = np.linspace(0, 165, 5), np.linspace(1e-3, 4e-2, 4)
+    fig = plotting.stability_chart(k, tau, np.full((4, 5), 0.99), title=title)
+    fig.canvas.draw()
+    box = fig.axes[0].title.get_window_extent()
+    assert 0 <= box.x0 and box.x1 <= fig.bbox.x1 and box.y1 <= fig.bbox.y1
