@@ -209,6 +209,10 @@ def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val:
     values = values[np.isfinite(values) & (values > 0)]
     if values.size and values.max() >= 10 * values.min():
         ax.set_yscale("log")
+    else:
+        # a run that barely moves the objective read "1e-5+1" over the axis and ticks 0..2:
+        # the objective's own values read at once
+        ax.yaxis.get_major_formatter().set_useOffset(False)
     ax.set_xlabel("Step")
     ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # steps are updates
     ax.set_ylabel("Objective" if paper is None else f"Objective (paper gains, training: {paper:.4g})")

@@ -125,3 +125,13 @@ def test_stability_chart_title_with_many_modes_stays_on_the_figure():
     fig.canvas.draw()
     box = fig.axes[0].title.get_window_extent()
     assert 0 <= box.x0 and box.x1 <= fig.bbox.x1 and box.y1 <= fig.bbox.y1
+
+
+def test_loss_curves_of_a_run_that_barely_moves_read_without_an_offset():
+    steps = np.arange(21)
+    fig = plotting.loss_curves(steps, 1.0 + 1e-6 * steps[::-1], np.array([0, 10, 20]), 1.0 + 1e-6 * np.array([3.0, 2.0, 1.0]), "Tuning dfs", 20, 1.0)
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    assert ax.yaxis.get_offset_text().get_text() == ""
+    ticks = [float(t.get_text().replace("\u2212", "-")) for t in ax.get_yticklabels() if t.get_text()]
+    assert all(0.99 < v < 1.01 for v in ticks)
