@@ -421,7 +421,7 @@ def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model
         ax.axvline(t_model[0], color="k", lw=0.8, ls=":")
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8, loc="upper right")
+    axes[0, 0].legend(fontsize=8, loc="best")  # a hub that drifts up fills the upper right
     axes[-1, 0].set_xlabel("Time (s)")
     fig.suptitle(title)
     fig.tight_layout()

@@ -135,3 +135,18 @@ def test_loss_curves_of_a_run_that_barely_moves_read_without_an_offset():
     assert ax.yaxis.get_offset_text().get_text() == ""
     ticks = [float(t.get_text().replace("\u2212", "-")) for t in ax.get_yticklabels() if t.get_text()]
     assert all(0.99 < v < 1.01 for v in ticks)
+
+
+def test_identification_legend_leaves_the_record_visible():
+    # calibrate --record: the hub angle drifts up through the decay, under the legend that was
+    # pinned to the upper right
+    t = np.arange(0.0, 4.0, 1e-3)
+    hub = 2e-3 * np.exp(-0.8 * t) * np.cos(2 * np.pi * 13.3 * t) + 1e-3 * t
+    tip = -3e-3 * np.exp(-0.8 * t) * np.cos(2 * np.pi * 13.3 * t)
+    y = np.stack([hub, tip], axis=1)
+    fig = plotting.identification(t, y, t, y, ["hub_rad", "tip_m"], "tap.csv")
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    legend = ax.get_legend().get_window_extent()
+    points = ax.transData.transform(np.stack([t[::10], hub[::10]], axis=1))
+    assert not any(legend.contains(*p) for p in points)
