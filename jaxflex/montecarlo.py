@@ -37,7 +37,7 @@ from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
-from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, perturbed_params, sample_scenarios, scenario_plant
+from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, sample_scenarios, scenario_modes_hz, scenario_plant
 
 CONTROLLERS = NAMES
 META = "montecarlo.json"
@@ -193,9 +193,8 @@ class _Runner:
         self.key = jax.random.key(config.seed)
 
         def one(scenario: Scenario) -> dict[str, jax.Array]:
-            params = perturbed_params(self.beam, scenario.plant)
             plant = self.nominal if scenario.plant is None else scenario_plant(self.beam, config.n_modes, spec.dt, config.method, scenario)
-            freqs = beam.natural_frequencies_hz(params, config.n_modes)
+            freqs = scenario_modes_hz(self.beam, config.n_modes, scenario)
             closed = rollout(plant, self.controller, self.params, scenario, output="metrics", mode_freqs_hz=freqs)
             opened = rollout(plant, open_loop(), OpenLoopParams(), scenario, output="metrics", mode_freqs_hz=freqs)
             return _metrics_row(closed, opened.modal_energy)

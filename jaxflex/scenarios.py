@@ -76,6 +76,13 @@ def scenario_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str
     return discretize(make_plant(perturbed_params(params, scenario.plant), n_modes), dt, method)
 
 
+def scenario_modes_hz(params: beam.BeamParams, n_modes: int, scenario: Scenario) -> jax.Array:
+    """[n_modes] natural frequencies (Hz) of the arm a scenario runs on, where its vibration
+    is measured (``rollout``'s ``mode_freqs_hz``): with plant uncertainty a drawn arm's peaks
+    sit away from the nominal arm's."""
+    return beam.natural_frequencies_hz(perturbed_params(params, scenario.plant), n_modes)
+
+
 def check_plants(spec: "ScenarioSpec", params: beam.BeamParams, n_modes: int, method: str) -> None:
     """Build the nominal plant and the plants at each corner of ``spec``'s uncertainty box,
     refusing the first that ``make_plant`` refuses (not finite in the run's dtype) or, for

@@ -9,8 +9,9 @@ score them higher):
 * ``hub_ise``: integral of the squared hub angle (the hub-angle error; set-point 0);
 * ``effort``: integral of the squared torque;
 * ``vibration``: energy of the tip deflection near the modal frequencies: the squared
-  magnitude of its Hann-windowed Fourier transform at each natural frequency of the nominal
-  model, summed over modes (``RunMetrics.modal_energy``, streamed in the rollout).
+  magnitude of its Hann-windowed Fourier transform at each natural frequency of the arm the
+  scenario runs on (its plant perturbation included), summed over modes
+  (``RunMetrics.modal_energy``, streamed in the rollout).
 
 The batch is combined by its mean, its CVaR (the mean of the worst ``1 - level`` fraction),
 or a smooth worst case ``T logsumexp(l / T) - T log B``.

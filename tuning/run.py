@@ -9,10 +9,10 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from jaxflex import beam, fileio, plotting
+from jaxflex import fileio, plotting
 from jaxflex.analysis import welch
 from jaxflex.rollout import rollout
-from jaxflex.scenarios import perturbed_params, scenario_plant
+from jaxflex.scenarios import scenario_modes_hz, scenario_plant
 from tuning.tuner import Problem, TuneConfig, summarize, tune
 
 N_SHOWN_HELDOUT = 3
@@ -48,9 +48,7 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
         estimates = {n: welch(tr.z[:, 1], 1 / problem.dt, nperseg=nperseg) for n, tr in trajs.items()}
         psd = {n: np.asarray(p) for n, (_, p) in estimates.items()}
         freqs = np.asarray(estimates["tuned"][0])
-        # the modes of the plant this scenario ran on: with plant uncertainty in the scenarios a
-        # held-out arm's peaks sit away from the nominal arm's frequencies
-        modes_hz = problem.freqs_hz if scenario.plant is None else beam.natural_frequencies_hz(perturbed_params(problem.beam, scenario.plant), config.n_modes)
+        modes_hz = scenario_modes_hz(problem.beam, config.n_modes, scenario)
         fig = plotting.psds(freqs, psd, np.asarray(modes_hz), "PSD of tip deflection (m^2/Hz)", f"{config.controller}: paper vs tuned gains, {label}", style_of={"paper gains": config.controller})
         name = f"psd_{idx}.png"
         plotting.save(fig, os.path.join(out_dir, name))

@@ -31,7 +31,7 @@ from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import rollout
-from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, sample_scenarios, scenario_plant
+from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, sample_scenarios, scenario_modes_hz, scenario_plant
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
 from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_controller
@@ -159,7 +159,6 @@ class Problem:
         self.dt = spec.dt
         self.tc: TunedController = tuned_controller(config.controller, spec.dt, config.capacity, config.delay, config.pade_order, config.fuzzy_temperature)
         self.beam = config.beam
-        self.freqs_hz = beam.natural_frequencies_hz(self.beam, config.n_modes)
         key_train, key_val = jax.random.split(jax.random.key(config.seed))
         self.train = sample_scenarios(spec, key_train, config.n_scenarios, config.n_modes)
         self.heldout = sample_scenarios(dataclasses.replace(spec, include_paper=False), key_val, config.n_heldout, config.n_modes)
@@ -191,7 +190,7 @@ class Problem:
 
         def one(scenario: Scenario) -> objectives.Terms:
             plant = self.nominal if scenario.plant is None else scenario_plant(self.beam, config.n_modes, self.dt, config.method, scenario)
-            freqs = self.freqs_hz if config.objective.vibration > 0 else None
+            freqs = scenario_modes_hz(self.beam, config.n_modes, scenario) if config.objective.vibration > 0 else None
             return objectives.terms_from_metrics(rollout(plant, self.tc.controller, params, scenario, output="metrics", mode_freqs_hz=freqs))
 
         return jax.vmap(one)(batch)
