@@ -298,11 +298,11 @@ def run_montecarlo(
     keeps = [min(runner.chunk, config.n_scenarios - index * runner.chunk) for index in range(n_chunks)]
     stored = [os.path.exists(_chunk_path(out_dir, index)) for index in range(n_chunks)]
     bar = None
+    if resume:  # said with or without the progress bar (--no-progress)
+        print(f"montecarlo: resuming: {sum(stored)} of {n_chunks} chunks already in {chunks_dir}", file=sys.stderr, flush=True)
     if progress:
         from tqdm.auto import tqdm
 
-        if resume:
-            print(f"montecarlo: resuming: {sum(stored)} of {n_chunks} chunks already in {chunks_dir}", file=sys.stderr, flush=True)
         # the stored chunks count from the start, so that the bar's rate and time left are those of the chunks run
         bar = tqdm(total=config.n_scenarios, initial=sum(k for k, s in zip(keeps, stored) if s), desc=f"montecarlo {config.controller}", unit="scenario")
     columns: dict[str, list[np.ndarray]] = {}

@@ -529,3 +529,6 @@ def test_resume_says_so_and_its_bar_starts_at_the_stored_chunks(tmp_path, monkey
     assert f"montecarlo: resuming: 3 of 5 chunks already in {tmp_path / 'chunks'}" in err
     assert "30/45" in err and "10/45" not in err, err
     assert summary["n_scenarios"] == 45 and summary["metrics"]["tip_ise"]["max"] == 5.0
+    # without the bar (--no-progress) it still says so: it said nothing there
+    summary = run_montecarlo(config, tmp_path, resume=True, progress=False, figures=False)
+    assert f"montecarlo: resuming: 5 of 5 chunks already in {tmp_path / 'chunks'}" in capsys.readouterr().err

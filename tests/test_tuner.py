@@ -806,10 +806,12 @@ def test_an_arm_that_overflows_the_run_dtype_is_refused_with_the_config():
         ({"step": 30, "history": [{"step": 30}], "stopped_early": True}, "tune: the run in {out} stopped early after 30 updates; writing its results again"),
     ],
 )
-def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys, state, said):
+@pytest.mark.parametrize("progress", [True, False], ids=["bar", "no bar"])
+def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys, state, said, progress):
     """A resumed run says so, with the step it goes on from (it said nothing until its
     progress bar, after the compile, opened part-way); a finished or early-stopped one says
-    that it only writes its results again (it said "after 40 of 40 updates")."""
+    that it only writes its results again (it said "after 40 of 40 updates"). It says so
+    without the bar too (--no-progress, as under a scheduler): it said nothing there."""
     import tuning.tuner
 
     config = TuneConfig(steps=40)
@@ -824,5 +826,5 @@ def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys, state,
 
     monkeypatch.setattr(tuning.tuner, "Problem", problem)
     with pytest.raises(Sampled):
-        tune(config, tmp_path, resume=True, progress=True)
+        tune(config, tmp_path, resume=True, progress=progress)
     assert said.format(ckpt=tmp_path / CHECKPOINT, out=tmp_path) in capsys.readouterr().err

@@ -309,7 +309,8 @@ def tune(
         when its final point fell between validations (every run scores the parameters after
         its last update): that extra score may have moved the best parameters and the
         early-stopping count.
-      progress: show a tqdm progress bar with the loss and the validation objective.
+      progress: show a tqdm progress bar with the loss and the validation objective (a
+        resumed run says where it goes on from either way).
       on_step: called with the step number after each step (tests use it to interrupt).
       optimizer: any optax GradientTransformation (default Adam at ``config.learning_rate``);
         gradients are clipped to ``config.clip_norm`` before it. A resumed run must use the
@@ -343,9 +344,9 @@ def tune(
     if on_start is not None:
         on_start()
     os.makedirs(out_dir, exist_ok=True)
+    if resume:  # said with or without the progress bar (--no-progress): where the run goes on from
+        print(f"tune: {_resume_line(out_dir, meta, config.steps)}", file=sys.stderr, flush=True)
     if progress:
-        if resume:
-            print(f"tune: {_resume_line(out_dir, meta, config.steps)}", file=sys.stderr, flush=True)
         print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios, compiling", file=sys.stderr, flush=True)
     problem = Problem(config, optimizer)
     names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
