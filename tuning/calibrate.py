@@ -185,8 +185,10 @@ def calibrate(
       damping: optional [n_d <= n_f] measured damping ratios of modes 1..n_d, each in (0, 1).
 
     Raises:
-      ValueError: naming a bad input; fields that the measured frequencies do not tell apart;
-        or a fit that ran to ``MAX_FACTOR`` times a starting value.
+      ValueError: naming a bad input; a fitted field that does not act on the frequencies
+        (the hub's inertia with the hub clamped); fields that the measured frequencies do not
+        tell apart; a fit that ran to ``MAX_FACTOR`` times a starting value; or a fit that did
+        not converge.
     """
     params = beam.BeamParams() if params is None else params
     measured, fit, n_modes, ratios = _check(measured_hz, params, fit, n_modes, hub, damping)
