@@ -412,9 +412,10 @@ def _figures(runner: _Runner, columns: dict[str, np.ndarray], out_dir: str) -> l
     ok = ~columns["diverged"].astype(bool)
     names = metric_names(runner.config.n_modes)
     data = {name: columns[name][ok] for name in names}
-    plotting.save(plotting.histograms(data, names, f"{runner.config.controller}: {int(ok.sum())} of {ok.size} runs (diverged left out)"), os.path.join(out_dir, "histograms.png"))
+    arm = f"nominal {plotting.arm_label(runner.beam.length_m, beam.natural_frequencies_hz(runner.beam, runner.config.n_modes))}"
+    plotting.save(plotting.histograms(data, names, f"{runner.config.controller}: {int(ok.sum())} of {ok.size} runs (diverged left out)\n{arm}"), os.path.join(out_dir, "histograms.png"))
     percentiles = sorted(set(runner.config.percentiles) | {50.0})
     t, bands, kept, count = tip_bands(runner, percentiles)
-    title = f"{runner.config.controller}: tip deflection percentiles over {kept} of {count} scenarios (diverged left out)"
+    title = f"{runner.config.controller}: tip deflection percentiles over {kept} of {count} scenarios (diverged left out)\n{arm}"
     plotting.save(plotting.percentile_bands(t, bands, percentiles, "Tip deflection (m)", title), os.path.join(out_dir, "tip_bands.png"))
     return ["histograms.png", "tip_bands.png"]

@@ -51,6 +51,12 @@ def _styles(runs: Sequence[str], style_of: Mapping[str, str] | None = None) -> d
     return {run: fixed[run] if run in fixed else next(others, {}) for run in runs}
 
 
+def arm_label(length_m: float, modes_hz: Sequence[float]) -> str:
+    """Which arm a figure is of, as its title says it: "0.6 m arm, 2 modes at 13.3, 36.5 Hz"."""
+    n = len(modes_hz)
+    return f"{length_m:g} m arm, {n} mode{'s' if n > 1 else ''} at {', '.join(f'{float(f):.3g}' for f in modes_hz)} Hz"
+
+
 def _finite_prefix(values: np.ndarray) -> int:
     bad = ~np.isfinite(values)
     return int(np.argmax(bad)) if bad.any() else values.shape[0]

@@ -137,7 +137,7 @@ def run(
 
     fig = plotting.stability_chart(
         chart.k, chart.tau_s, chart.spectral_radius, chart.rightmost_real, chart.first_destabilising_delay_s, point=(k, tau),
-        title=f"DFS stability: {arm.length_m:g} m arm, {n_modes} mode{'s' if n_modes > 1 else ''} at {', '.join(f'{f:.3g}' for f in beam.natural_frequencies_hz(arm, n_modes))} Hz, sampled at {dt * 1e3:g} ms ({method})",
+        title=f"DFS stability: {plotting.arm_label(arm.length_m, beam.natural_frequencies_hz(arm, n_modes))}, sampled at {dt * 1e3:g} ms ({method})",
     )
     result = {
         "k": k,

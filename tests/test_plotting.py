@@ -15,25 +15,31 @@ def _close_figures():
 
 def test_tune_psd_marks_the_modes_of_the_scenarios_own_plant(monkeypatch, tmp_path):
     # With plant uncertainty in the scenarios, a held-out arm's peaks sit away from the
-    # nominal frequencies: the lines labelled "model modes" were the nominal arm's.
+    # nominal frequencies: the lines labelled "model modes" were the nominal arm's. The titles
+    # name the arm each figure is of (a 0.8 m arm here, not the paper's 0.6 m).
     from tuning import run
     from tuning.tuner import Problem, TuneConfig
 
-    config = TuneConfig(controller="dfs", n_scenarios=2, n_heldout=2, scenarios=ScenarioSpec(horizon_s=0.05, youngs_modulus_rel=0.4, payload_max_kg=0.1))
+    arm = beam.BeamParams(length_m=0.8)
+    config = TuneConfig(controller="dfs", n_scenarios=2, n_heldout=2, beam=arm, scenarios=ScenarioSpec(horizon_s=0.05, youngs_modulus_rel=0.4, payload_max_kg=0.1))
     problem = Problem(config)
-    marked = []
-    monkeypatch.setattr(plotting, "psds", lambda freqs, runs, modes, *a, **k: marked.append(np.asarray(modes)) or plotting.plt.figure())
-    monkeypatch.setattr(plotting, "responses", lambda *a, **k: plotting.plt.figure())
+    marked, titles = [], {"responses": [], "psds": [], "loss": []}
+    monkeypatch.setattr(plotting, "psds", lambda freqs, runs, modes, ylabel, title, **k: marked.append(np.asarray(modes)) or titles["psds"].append(title) or plotting.plt.figure())
+    monkeypatch.setattr(plotting, "responses", lambda t, runs, signals, div, title, **k: titles["responses"].append(title) or plotting.plt.figure())
+    monkeypatch.setattr(plotting, "loss_curves", lambda steps, loss, vs, v, title, *a: titles["loss"].append(title) or plotting.plt.figure())
     state = {"problem": problem, "history": [{"step": 0, "loss": 1.0, "val_objective": 1.0}], "best_step": 0, "best_raw": problem.initial_raw}
     run._figures(state, str(tmp_path), 1.0)
     assert len(marked) == 3  # the paper scenario (nominal plant), then held-out 1 and 2
-    nominal = np.asarray(beam.natural_frequencies_hz(problem.beam, config.n_modes))
+    nominal = np.asarray(beam.natural_frequencies_hz(arm, config.n_modes))
     np.testing.assert_allclose(marked[0], nominal)
+    assert titles["loss"] == [f"Tuning dfs for the 0.8 m arm, 2 modes at {nominal[0]:.3g}, {nominal[1]:.3g} Hz"]
     for i, modes in enumerate(marked[1:]):
-        plant = perturbed_params(problem.beam, jax_index(problem.heldout.plant, i))
+        plant = perturbed_params(arm, jax_index(problem.heldout.plant, i))
         expected = np.asarray(beam.natural_frequencies_hz(plant, config.n_modes))
         assert np.max(np.abs(expected / nominal - 1)) > 0.01  # the draw moved them
         np.testing.assert_allclose(modes, expected, rtol=1e-6)
+        title = f"dfs: paper vs tuned gains, held-out scenario {i + 1}\n0.8 m arm, 2 modes at {expected[0]:.3g}, {expected[1]:.3g} Hz"
+        assert titles["responses"][i + 1] == titles["psds"][i + 1] == title
 
 
 def jax_index(tree, i):

@@ -9,7 +9,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from jaxflex import fileio, plotting
+from jaxflex import beam, fileio, plotting
 from jaxflex.analysis import welch
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import scenario_modes_hz, scenario_plant
@@ -26,7 +26,7 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
     loss = np.array([h["loss"] for h in history])
     val_rows = [h for h in history if h.get("val_objective") is not None]
     written = []
-    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller}", state["best_step"], paper_objective)
+    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller} for the {plotting.arm_label(problem.beam.length_m, beam.natural_frequencies_hz(problem.beam, config.n_modes))}", state["best_step"], paper_objective)
     plotting.save(fig, os.path.join(out_dir, "loss.png"))
     written.append("loss.png")
 
@@ -40,7 +40,9 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
         t = np.asarray(trajs["tuned"].t)
         runs = {name: {"tip": np.asarray(tr.z[:, 1]), "hub": np.asarray(tr.z[:, 0])} for name, tr in trajs.items()}
         div = {name: bool(~np.all(np.isfinite(np.asarray(tr.x)))) for name, tr in trajs.items()}
-        fig = plotting.responses(t, runs, [("tip", "Tip deflection (m)"), ("hub", "Hub angle (rad)")], div, f"{config.controller}: paper vs tuned gains, {label}", style_of={"paper gains": config.controller})
+        modes_hz = np.asarray(scenario_modes_hz(problem.beam, config.n_modes, scenario))
+        title = f"{config.controller}: paper vs tuned gains, {label}\n{plotting.arm_label(problem.beam.length_m, modes_hz)}"
+        fig = plotting.responses(t, runs, [("tip", "Tip deflection (m)"), ("hub", "Hub angle (rad)")], div, title, style_of={"paper gains": config.controller})
         name = f"response_{idx}.png"
         plotting.save(fig, os.path.join(out_dir, name))
         written.append(name)
@@ -48,8 +50,7 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
         estimates = {n: welch(tr.z[:, 1], 1 / problem.dt, nperseg=nperseg) for n, tr in trajs.items()}
         psd = {n: np.asarray(p) for n, (_, p) in estimates.items()}
         freqs = np.asarray(estimates["tuned"][0])
-        modes_hz = scenario_modes_hz(problem.beam, config.n_modes, scenario)
-        fig = plotting.psds(freqs, psd, np.asarray(modes_hz), "PSD of tip deflection (m^2/Hz)", f"{config.controller}: paper vs tuned gains, {label}", style_of={"paper gains": config.controller})
+        fig = plotting.psds(freqs, psd, modes_hz, "PSD of tip deflection (m^2/Hz)", title, style_of={"paper gains": config.controller})
         name = f"psd_{idx}.png"
         plotting.save(fig, os.path.join(out_dir, name))
         written.append(name)
