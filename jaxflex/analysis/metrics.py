@@ -45,10 +45,12 @@ def _as_signal(s: ArrayLike, name: str = "s") -> jax.Array:
 
 def _as_dt(dt: ArrayLike, dtype: Any) -> jax.Array:
     """``dt`` (s) as a scalar of ``dtype``; checked a finite real number > 0 when concrete."""
-    if jnp.ndim(dt) != 0:
-        raise ValueError(f"dt must be a scalar (s); got shape {jnp.shape(dt)}")
+    # a concrete value is checked a real number before jnp.ndim sees it (None warns there)
+    arr = checks.real_array("dt", dt, scalar=True) if is_concrete(dt) else dt
+    if jnp.ndim(arr) != 0:
+        raise ValueError(f"dt must be a scalar (s); got shape {jnp.shape(arr)}")
     if is_concrete(dt):
-        v = float(checks.real_array("dt", dt, scalar=True))
+        v = float(arr)
         if not (math.isfinite(v) and v > 0):
             raise ValueError(f"dt must be finite and > 0 (s); got {v}")
     return jnp.asarray(dt, dtype)
