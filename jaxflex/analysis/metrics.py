@@ -21,7 +21,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from jaxflex import checks
-from jaxflex.controllers.base import is_concrete
+from jaxflex.controllers.base import check_finite_scalar, is_concrete
 
 DIVERGENCE_THRESHOLD = 1e6
 """Default bound on |x| above which ``diverged`` reports a run as diverged."""
@@ -45,14 +45,10 @@ def _as_signal(s: ArrayLike, name: str = "s") -> jax.Array:
 
 def _as_dt(dt: ArrayLike, dtype: Any) -> jax.Array:
     """``dt`` (s) as a scalar of ``dtype``; checked a finite real number > 0 when concrete."""
-    # a concrete value is checked a real number before jnp.ndim sees it (None warns there)
-    arr = checks.real_array("dt", dt, scalar=True) if is_concrete(dt) else dt
-    if jnp.ndim(arr) != 0:
-        raise ValueError(f"dt must be a scalar (s); got shape {jnp.shape(arr)}")
     if is_concrete(dt):
-        v = float(arr)
-        if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"dt must be finite and > 0 (s); got {v}")
+        check_finite_scalar("dt", dt, positive=True, unit="s")
+    elif jnp.ndim(dt) != 0:
+        raise ValueError(f"dt must be a scalar (s); got shape {jnp.shape(dt)}")
     return jnp.asarray(dt, dtype)
 
 

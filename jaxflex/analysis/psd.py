@@ -24,7 +24,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from jaxflex import checks
-from jaxflex.controllers.base import is_concrete
+from jaxflex.controllers.base import check_finite_scalar, is_concrete
 
 WINDOWS = ("hann", "hamming", "blackman", "boxcar")
 """Accepted window names (scipy's periodic, ``sym=False``, definitions)."""
@@ -151,12 +151,7 @@ def _validate(x_shape: tuple[int, ...], fs: Any, window: Any, nperseg: Any, nove
     if not any(detrend is d for d in (None, False)) and detrend not in ("constant", "linear"):
         raise ValueError(f"detrend must be one of 'constant', 'linear', None or False; got {detrend!r}")
     if is_concrete(fs):
-        fs_arr = checks.real_array("fs", fs, scalar=True)
-        if fs_arr.ndim != 0:
-            raise ValueError(f"fs must be a scalar (Hz); got shape {fs_arr.shape}")
-        fs_val = float(fs_arr)
-        if not (math.isfinite(fs_val) and fs_val > 0):
-            raise ValueError(f"fs must be finite and > 0 (Hz); got {fs_val}")
+        check_finite_scalar("fs", fs, positive=True, unit="Hz")
     elif jnp.ndim(fs) != 0:
         raise ValueError(f"fs must be a scalar (Hz); got shape {jnp.shape(fs)}")
     return int(noverlap)

@@ -64,23 +64,24 @@ def check_params_type(params: Any, expected: type) -> None:
         raise ValueError(f"params must be a {expected.__name__} ({', '.join(expected._fields)}); got {type(params).__name__} {params!r}")
 
 
-def check_finite_scalar(name: str, value: Any, *, positive: bool = False, nonnegative: bool = False) -> float:
+def check_finite_scalar(name: str, value: Any, *, positive: bool = False, nonnegative: bool = False, unit: str = "") -> float:
     """Value check on a concrete scalar parameter; returns it as a float.
 
     Raises:
-      ValueError: naming ``name`` and the accepted range when ``value`` is not a finite
-        real scalar (and positive / non-negative where asked).
+      ValueError: naming ``name``, the accepted range and the ``unit`` (if given) when
+        ``value`` is not a finite real scalar (and positive / non-negative where asked).
     """
+    unit = f" ({unit})" if unit else ""
     arr = checks.real_array(name, value, scalar=True)
     if arr.ndim != 0:
-        raise ValueError(f"{name} must be a scalar; got shape {arr.shape}")
+        raise ValueError(f"{name} must be a scalar{unit}; got shape {arr.shape}")
     v = float(arr)
     if positive and not (v > 0 and v < float("inf")):
-        raise ValueError(f"{name} must be finite and > 0; got {v}")
+        raise ValueError(f"{name} must be finite and > 0{unit}; got {v}")
     if nonnegative and not (v >= 0 and v < float("inf")):
-        raise ValueError(f"{name} must be finite and >= 0; got {v}")
+        raise ValueError(f"{name} must be finite and >= 0{unit}; got {v}")
     if not (abs(v) < float("inf")):
-        raise ValueError(f"{name} must be finite; got {v}")
+        raise ValueError(f"{name} must be finite{unit}; got {v}")
     return v
 
 
