@@ -46,7 +46,7 @@ from jaxflex import checks
 from jaxflex.analysis.metrics import DIVERGENCE_THRESHOLD
 from jaxflex.controllers.base import Controller, check_controller, is_concrete, same_dt
 from jaxflex.plant import DiscretePlant, check_sampled
-from jaxflex.scenarios import Scenario
+from jaxflex.scenarios import Scenario, check_scenario
 
 
 class Trajectory(NamedTuple):
@@ -110,7 +110,7 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
     """Shapes and dtypes of the loop's inputs, and the metrics' options, named when wrong;
     returns ``settling_band`` as a Python float (a constant of the loop)."""
     check_sampled(plant)
-    checks.instance("scenario", scenario, Scenario, "build one with paper_scenario(...), initial_condition(...) or sample_scenarios(...), one member of a batch at a time")
+    check_scenario(scenario)
     for name in ("x0", "force", "noise"):
         value = getattr(scenario, name)
         if not isinstance(value, (jax.Array, np.ndarray)):

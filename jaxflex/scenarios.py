@@ -59,6 +59,11 @@ class PlantPerturbation(NamedTuple):
     payload_mass_kg: jax.Array
 
 
+def check_scenario(scenario: Any) -> Scenario:
+    """Refuse, by name, what is not one :class:`Scenario`."""
+    return checks.instance("scenario", scenario, Scenario, "build one with paper_scenario(...), initial_condition(...) or sample_scenarios(...), one member of a batch at a time")
+
+
 def perturbed_params(params: beam.BeamParams, perturbation: PlantPerturbation | None) -> beam.BeamParams:
     """The beam parameters of one scenario (the nominal ones when ``perturbation`` is None)."""
     if perturbation is None:
@@ -73,14 +78,14 @@ def perturbed_params(params: beam.BeamParams, perturbation: PlantPerturbation | 
 
 def scenario_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str, scenario: Scenario) -> DiscretePlant:
     """The sampled plant a scenario runs on (vmap this together with the rollout)."""
-    return discretize(make_plant(perturbed_params(params, scenario.plant), n_modes), dt, method)
+    return discretize(make_plant(perturbed_params(params, check_scenario(scenario).plant), n_modes), dt, method)
 
 
 def scenario_modes_hz(params: beam.BeamParams, n_modes: int, scenario: Scenario) -> jax.Array:
     """[n_modes] natural frequencies (Hz) of the arm a scenario runs on, where its vibration
     is measured (``rollout``'s ``mode_freqs_hz``): with plant uncertainty a drawn arm's peaks
     sit away from the nominal arm's."""
-    return beam.natural_frequencies_hz(perturbed_params(params, scenario.plant), n_modes)
+    return beam.natural_frequencies_hz(perturbed_params(params, check_scenario(scenario).plant), n_modes)
 
 
 def check_plants(spec: "ScenarioSpec", params: beam.BeamParams, n_modes: int, method: str) -> None:

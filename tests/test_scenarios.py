@@ -184,3 +184,25 @@ def test_sample_scenarios_and_initial_condition_name_bad_inputs():
     sc = initial_condition([0, 1, 0, 0, 0, 0], 10)
     assert sc.x0.dtype == jnp.zeros(()).dtype and sc.x0.tolist() == [0, 1, 0, 0, 0, 0]
     assert initial_condition(np.zeros(6, np.float32), 10).x0.dtype == jnp.float32  # a float x0 keeps its dtype
+
+
+def test_scenario_plant_and_modes_are_those_of_the_drawn_arm_and_refuse_a_non_scenario():
+    """``scenario_plant`` and ``scenario_modes_hz`` build the arm a scenario's perturbation
+    draws (the nominal one without), and name a non-Scenario instead of an AttributeError."""
+    from jaxflex.beam import natural_frequencies_hz
+    from jaxflex.plant import discretize
+    from jaxflex.scenarios import scenario_modes_hz, scenario_plant
+
+    arm = BeamParams()
+    batch = sample_scenarios(ScenarioSpec(youngs_modulus_rel=0.3, payload_max_kg=0.1, include_paper=False), jax.random.key(3), 2)
+    one = jax.tree.map(lambda a: a[1], batch)
+    drawn = arm._replace(youngs_modulus_pa=arm.youngs_modulus_pa * float(one.plant.youngs_modulus_scale), density_kg_m3=arm.density_kg_m3 * float(one.plant.density_scale),
+                         hub_inertia_kg_m2=arm.hub_inertia_kg_m2 * float(one.plant.hub_inertia_scale), payload_mass_kg=arm.payload_mass_kg + float(one.plant.payload_mass_kg))
+    np.testing.assert_allclose(scenario_modes_hz(arm, 2, one), natural_frequencies_hz(drawn, 2), rtol=1e-6)
+    np.testing.assert_allclose(scenario_plant(arm, 2, 1e-3, "zoh", one).Ad, discretize(make_plant(drawn, 2), 1e-3, "zoh").Ad, rtol=1e-6, atol=1e-9)
+    assert not np.allclose(scenario_modes_hz(arm, 2, one), natural_frequencies_hz(arm, 2), rtol=1e-3)
+    for bad in (None, {"plant": None}, batch.plant):
+        with pytest.raises(ValueError, match=r"scenario must be a Scenario \(build one with paper_scenario"):
+            scenario_modes_hz(arm, 2, bad)
+        with pytest.raises(ValueError, match=r"scenario must be a Scenario \(build one with paper_scenario"):
+            scenario_plant(arm, 2, 1e-3, "zoh", bad)
