@@ -221,15 +221,26 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
-def _cpu_model() -> str:
+def _cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str:
+    """The CPU's model name, with its family and model numbers where Linux gives them.
+
+    A virtual machine may report only "AMD EPYC" for different generations (family 23 is
+    Zen 1, 25 is Zen 3), whose rates differ by more than the spread of a run.
+    """
+    fields: dict[str, str] = {}
     try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
+        with open(cpuinfo, encoding="utf-8") as f:
             for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
+                if not line.strip():
+                    break  # the first processor's block
+                key, _, value = line.partition(":")
+                fields.setdefault(key.strip(), value.strip())
     except OSError:
         pass
-    return platform.processor() or "unknown"
+    name = fields.get("model name") or platform.processor() or "unknown"
+    if "cpu family" in fields and "model" in fields:
+        name += f" (family {fields['cpu family']}, model {fields['model']})"
+    return name
 
 
 def time_calls(fn: Callable, args: tuple, runs: int, min_time_s: float = 0.0) -> dict[str, float]:

@@ -13,7 +13,7 @@ import pytest
 
 from benchmarks import baselines as bl
 from benchmarks.bench_rollout import RTOL_CONTROL, RTOL_NUMPY, RTOL_SKFUZZY, check_baselines, count_flops, flops_per_step, grad_ops_per_step
-from jaxflex.bench import BenchConfig, controller_and_params, format_table, make_benchmark, run_bench
+from jaxflex.bench import BenchConfig, _cpu_model, controller_and_params, format_table, make_benchmark, run_bench
 from tests.helpers import tree_allclose
 
 ROW_FIELDS = {"controller": str, "integrator": str, "dtype": str, "batch": int, "mode": str, "steps_per_second": float, "compile_s": float, "device": str}
@@ -242,3 +242,13 @@ def test_smooth_defuzz_is_the_centroid_at_the_smooth_temperature():
     hand = fuzzy(temperature=0.02)
     np.testing.assert_array_equal(smooth_u, hand.step(fuzzy_params(), (), y)[1])
     assert abs(float(smooth_u[0]) - float(faithful.step(params, (), y)[1][0])) > 1e-3
+
+
+def test_cpu_model_names_the_family_and_model(tmp_path):
+    # A VM may call two generations "AMD EPYC"; the family and model tell them apart.
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 23\nmodel\t\t: 1\nmodel name\t: AMD EPYC\n\n"
+                    "processor\t: 1\ncpu family\t: 25\nmodel\t\t: 1\nmodel name\t: other\n")
+    assert _cpu_model(str(info)) == "AMD EPYC (family 23, model 1)"
+    info.write_text("processor\t: 0\nmodel name\t: Some CPU\n")
+    assert _cpu_model(str(info)) == "Some CPU"
