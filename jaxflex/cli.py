@@ -28,7 +28,7 @@ def _positive_int(text: str) -> int:
 
 _CPU_DEVICES_HELP = (
     "JAX CPU devices the batch is sharded over, one per core (default: the cores this process may use; "
-    "1: a single device whose kernels XLA splits across cores). Faster forward runs on a multi-core CPU "
+    "1: a single device whose kernels XLA splits across cores). Faster runs on a multi-core CPU "
     "(benchmarks/README.md); no effect on an accelerator"
 )
 
@@ -80,6 +80,7 @@ def _parser() -> argparse.ArgumentParser:
     tun.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
     tun.add_argument("--no-progress", action="store_true", help="no progress bar")
     tun.add_argument("--x64", action="store_true", help="tune in float64 (default float32)")
+    tun.add_argument("--cpu-devices", type=_positive_int, default=None, help=_CPU_DEVICES_HELP)
 
     stab = sub.add_parser("stability", help="DFS stability: critical delays, rightmost root, sampled-loop spectral radius, (k, tau) chart")
     stab.add_argument("--k", type=float, default=55.0, help="DFS gain (N*m/rad; default 55, the paper's)")
@@ -241,7 +242,7 @@ def _check_out(path: str) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    if hasattr(args, "cpu_devices"):  # bench and montecarlo, before JAX's first computation
+    if hasattr(args, "cpu_devices"):  # bench, montecarlo and tune, before JAX's first computation
         _use_cpu_devices(args.cpu_devices)
     if getattr(args, "x64", False):
         import jax

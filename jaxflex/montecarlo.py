@@ -37,7 +37,7 @@ from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
-from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, sample_scenarios, scenario_modes_hz, scenario_plant
+from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, pad_batch, sample_scenarios, scenario_modes_hz, scenario_plant
 
 CONTROLLERS = NAMES
 META = "montecarlo.json"
@@ -188,7 +188,6 @@ class _Runner:
         devices = jax.devices()
         self.n_devices = len(devices)
         self.chunk = config.run_chunk
-        self.padding = -self.chunk % self.n_devices
         self.sharding = NamedSharding(Mesh(np.array(devices), ("scenarios",)), PartitionSpec("scenarios"))
         self.key = jax.random.key(config.seed)
 
@@ -207,8 +206,7 @@ class _Runner:
 
     def run_chunk(self, index: int) -> dict[str, np.ndarray]:
         batch = self.sample(index)
-        if self.padding:
-            batch = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], self.padding, axis=0)]), batch)
+        batch = pad_batch(batch, self.n_devices)
         if jax.process_count() == 1:
             out = self.evaluate(jax.device_put(batch, self.sharding))
             return {k: np.asarray(v)[: self.chunk] for k, v in out.items()}

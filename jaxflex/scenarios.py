@@ -362,3 +362,14 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
         if plant is not None:
             plant = PlantPerturbation(*(leaf.at[0].set(v) for leaf, v in zip(plant, (1.0, 1.0, 1.0, 0.0))))
     return Scenario(x0, force, noise, plant)
+
+
+def pad_batch(batch: Any, multiple: int) -> Any:
+    """``batch`` (a pytree with the scenarios on axis 0 of every leaf) with its last scenario
+    repeated until the count is a multiple of ``multiple``, so that it splits evenly over that
+    many devices; the caller drops the padding's results. Unchanged when it divides already."""
+    n = jax.tree.leaves(batch)[0].shape[0]
+    pad = -n % multiple
+    if pad == 0:
+        return batch
+    return jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), batch)

@@ -5,6 +5,8 @@ import dataclasses
 import math
 import os
 import json
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -828,3 +830,37 @@ def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys, state,
     with pytest.raises(Sampled):
         tune(config, tmp_path, resume=True, progress=progress)
     assert said.format(ckpt=tmp_path / CHECKPOINT, out=tmp_path) in capsys.readouterr().err
+
+
+def test_tuning_sharded_over_devices_equals_one_device(tmp_path, capsys):
+    """`jaxflex tune --cpu-devices 2` in a fresh process shards the scenarios over 2 devices
+    (7 training and 5 held-out scenarios: both padded to an even count) and takes the steps of
+    the 1-device run, to the tuned gains and objectives (float64: only the order of additions
+    differs)."""
+    from jaxflex import cli
+
+    config = tmp_path / "tune.toml"
+    config.write_text('controller = "dfs"\nn_scenarios = 7\nn_heldout = 5\nsteps = 3\neval_every = 1\n[scenarios]\nhorizon_s = 0.2\nyoungs_modulus_rel = 0.1\n')
+    runs = {}
+    in_process = jax.default_backend() == "cpu" and jax.device_count() == 1 and not os.environ.get("XLA_FLAGS")
+    if in_process:  # conftest.py enables float64 here, as --x64 does in the subprocess
+        assert cli.main(["tune", "--config", str(config), "--out", str(tmp_path / "d1"), "--no-progress"]) == 0
+        capsys.readouterr()
+    for devices in (2,) if in_process else (1, 2):
+        command = [sys.executable, "-m", "jaxflex.cli", "tune", "--config", str(config), "--x64", "--cpu-devices", str(devices), "--no-progress", "--out", str(tmp_path / f"d{devices}")]
+        out = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
+        assert out.returncode == 0, out.stderr
+    for devices in (1, 2):
+        runs[devices] = json.loads((tmp_path / f"d{devices}" / "tuned.json").read_text())
+    assert runs[1]["devices"] == 1 and runs[2]["devices"] == 2 and runs[2]["dtype"] == "float64"
+    assert runs[1]["best_step"] == runs[2]["best_step"]
+    for name, value in runs[1]["params"].items():
+        np.testing.assert_allclose(runs[2]["params"][name], value, rtol=1e-10, err_msg=name)
+    for batch in ("train", "heldout"):
+        for when in ("before", "after", "paper"):
+            np.testing.assert_allclose(runs[2]["objective"][batch][when], runs[1]["objective"][batch][when], rtol=1e-10, err_msg=f"{batch}.{when}")
+    history = {devices: np.genfromtxt(tmp_path / f"d{devices}" / "history.csv", delimiter=",", names=True) for devices in (1, 2)}
+    assert history[1].dtype.names == history[2].dtype.names and len(history[1]) == 4  # rows 0-3
+    for name in history[1].dtype.names:  # every point's parameters, objectives and gradient norm
+        np.testing.assert_allclose(history[2][name], history[1][name], rtol=1e-10, err_msg=name)
+    assert np.all(np.diff(history[2]["k"]) != 0)  # each update moved the gains

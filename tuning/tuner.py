@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxflex import beam, checks, fileio
 from jaxflex.analysis import stability
@@ -31,7 +32,7 @@ from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import rollout
-from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, sample_scenarios, scenario_modes_hz, scenario_plant
+from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, pad_batch, sample_scenarios, scenario_modes_hz, scenario_plant
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
 from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_controller
@@ -160,8 +161,12 @@ class Problem:
         self.tc: TunedController = tuned_controller(config.controller, spec.dt, config.capacity, config.delay, config.pade_order, config.fuzzy_temperature)
         self.beam = config.beam
         key_train, key_val = jax.random.split(jax.random.key(config.seed))
-        self.train = sample_scenarios(spec, key_train, config.n_scenarios, config.n_modes)
-        self.heldout = sample_scenarios(dataclasses.replace(spec, include_paper=False), key_val, config.n_heldout, config.n_modes)
+        # With several devices (a device per core: `jaxflex tune --cpu-devices`) each evaluates
+        # its shard of the scenarios, and the batches are laid out so once, not on every step.
+        devices = jax.devices()
+        self.mesh = Mesh(np.array(devices), ("scenarios",)) if len(devices) > 1 else None
+        self.train = self._place(sample_scenarios(spec, key_train, config.n_scenarios, config.n_modes))
+        self.heldout = self._place(sample_scenarios(dataclasses.replace(spec, include_paper=False), key_val, config.n_heldout, config.n_modes))
         self.nominal = discretize(make_plant(self.beam, config.n_modes), spec.dt, config.method)
         initial = self.tc.from_named(dict(config.initial))
         try:
@@ -181,19 +186,46 @@ class Problem:
                 "check the arm ([beam]), dt and method, and the scenarios' disturbances"
             )
         self.scales = objectives.reference_scales(self.scales)
-        self.evaluate = jax.jit(self._objective)
-        self.train_step = self._make_train_step()
+        objective, train_step = jax.jit(self._objective), self._make_train_step()
+        # The parameters and the optimiser state replicated on every device, whatever made
+        # them (the paper's gains, a checkpoint, the last step): under a mesh each other
+        # placement would trace and compile the functions again.
+        self.evaluate = lambda raw, batch: objective(self._replicated(raw), batch)
+        self.train_step = lambda raw, opt_state, batch: train_step(self._replicated(raw), self._replicated(opt_state), batch)
 
     def _terms(self, raw: Any, batch: Scenario) -> objectives.Terms:
         params = self.tc.to_physical(raw)
         config = self.config
 
-        def one(scenario: Scenario) -> objectives.Terms:
+        def one(params: Any, scenario: Scenario) -> objectives.Terms:
             plant = self.nominal if scenario.plant is None else scenario_plant(self.beam, config.n_modes, self.dt, config.method, scenario)
             freqs = scenario_modes_hz(self.beam, config.n_modes, scenario) if config.objective.vibration > 0 else None
             return objectives.terms_from_metrics(rollout(plant, self.tc.controller, params, scenario, output="metrics", mode_freqs_hz=freqs))
 
-        return jax.vmap(one)(batch)
+        run = jax.vmap(one, in_axes=(None, 0))
+        if self.mesh is None:
+            return run(params, batch)
+        # shard_map rather than jit's automatic partitioning: the parameters' cotangent is then
+        # summed over the devices once, at the end of the reverse pass, instead of in every
+        # reverse step of the loop (benchmarks/README.md, "Three ways to run on 2 cores").
+        # The parameters go in as a replicated argument, not by closure: after the first step
+        # they carry the mesh's sharding, which the manual region would refuse.
+        # check_vma=False: the rollout's scan carries start from constants, which the
+        # varying-axes check would reject as carries that turn varying.
+        n = batch.x0.shape[0]
+        spec = PartitionSpec("scenarios")
+        sharded = jax.shard_map(run, mesh=self.mesh, in_specs=(PartitionSpec(), spec), out_specs=spec, check_vma=False)
+        return jax.tree.map(lambda t: t[:n], sharded(params, pad_batch(batch, self.mesh.size)))
+
+    def _place(self, batch: Scenario) -> Scenario:
+        """``batch`` sharded over the devices, when there are several and it splits evenly
+        (otherwise ``_terms`` pads it on every call)."""
+        if self.mesh is None or batch.x0.shape[0] % self.mesh.size:
+            return batch
+        return jax.device_put(batch, NamedSharding(self.mesh, PartitionSpec("scenarios")))
+
+    def _replicated(self, tree: Any) -> Any:
+        return tree if self.mesh is None else jax.device_put(tree, NamedSharding(self.mesh, PartitionSpec()))
 
     def log_radius(self, raw: Any) -> jax.Array | None:
         """Log spectral radius of the nominal sampled DFS loop; None unless the controller is
@@ -347,7 +379,7 @@ def tune(
     if resume:  # said with or without the progress bar (--no-progress): where the run goes on from
         print(f"tune: {_resume_line(out_dir, meta, config.steps)}", file=sys.stderr, flush=True)
     if progress:
-        print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios, compiling", file=sys.stderr, flush=True)
+        print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios on {jax.device_count()} device(s), compiling", file=sys.stderr, flush=True)
     problem = Problem(config, optimizer)
     names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
     if resume:
@@ -469,6 +501,7 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
             f"combined by {problem.config.objective.reduction}",
         },
         "dtype": str(jax.tree.leaves(best)[0].dtype),  # of the simulation: float32, or float64 under --x64
+        "devices": 1 if problem.mesh is None else problem.mesh.size,  # the scenarios were sharded over
         "steps_run": state["step"],
         "best_step": state["best_step"],
         "stopped_early": state["stopped_early"],
