@@ -4,7 +4,9 @@
 seed, normalises the objective by the paper's gains on the training batch, then runs
 ``steps`` optimiser updates of the unconstrained parameters. Every ``checkpoint_every``
 steps it writes ``checkpoint.npz`` atomically; ``resume=True`` continues from it, and since
-every step is deterministic the result equals an uninterrupted run with the same seed.
+every step is deterministic the result equals an uninterrupted run with the same seed (on
+the same number of devices; on another, to the order of additions). The scenarios are
+sharded over all of JAX's devices (``jaxflex tune`` gives it one per CPU core).
 """
 
 from __future__ import annotations
