@@ -832,25 +832,23 @@ def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys, state,
     assert said.format(ckpt=tmp_path / CHECKPOINT, out=tmp_path) in capsys.readouterr().err
 
 
-def test_tuning_sharded_over_devices_equals_one_device(tmp_path, capsys):
+def test_tuning_sharded_over_devices_equals_one_device(tmp_path):
     """`jaxflex tune --cpu-devices 2` in a fresh process shards the scenarios over 2 devices
     (7 training and 5 held-out scenarios: both padded to an even count) and takes the steps of
     the 1-device run, to the tuned gains and objectives (float64: only the order of additions
     differs)."""
-    from jaxflex import cli
+    from jaxflex import fileio
 
     config = tmp_path / "tune.toml"
     config.write_text('controller = "dfs"\nn_scenarios = 7\nn_heldout = 5\nsteps = 3\neval_every = 1\n[scenarios]\nhorizon_s = 0.2\nyoungs_modulus_rel = 0.1\n')
     runs = {}
     in_process = jax.default_backend() == "cpu" and jax.device_count() == 1 and not os.environ.get("XLA_FLAGS")
-    if in_process:  # conftest.py enables float64 here, as --x64 does in the subprocess
-        assert cli.main(["tune", "--config", str(config), "--out", str(tmp_path / "d1"), "--no-progress"]) == 0
-        capsys.readouterr()
+    if in_process:  # conftest.py enables float64 here, as --x64 does in the subprocess; no figures
+        runs[1] = summarize(tune(TuneConfig.from_mapping(fileio.read_toml(str(config))), tmp_path / "d1", progress=False))
     for devices in (2,) if in_process else (1, 2):
         command = [sys.executable, "-m", "jaxflex.cli", "tune", "--config", str(config), "--x64", "--cpu-devices", str(devices), "--no-progress", "--out", str(tmp_path / f"d{devices}")]
         out = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
         assert out.returncode == 0, out.stderr
-    for devices in (1, 2):
         runs[devices] = json.loads((tmp_path / f"d{devices}" / "tuned.json").read_text())
     assert runs[1]["devices"] == 1 and runs[2]["devices"] == 2 and runs[2]["dtype"] == "float64"
     assert runs[1]["best_step"] == runs[2]["best_step"]
