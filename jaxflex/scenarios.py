@@ -367,8 +367,17 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
 def pad_batch(batch: Any, multiple: int) -> Any:
     """``batch`` (a pytree with the scenarios on axis 0 of every leaf) with its last scenario
     repeated until the count is a multiple of ``multiple``, so that it splits evenly over that
-    many devices; the caller drops the padding's results. Unchanged when it divides already."""
-    n = jax.tree.leaves(batch)[0].shape[0]
+    many devices; the caller drops the padding's results. Unchanged when it divides already.
+
+    Raises:
+      ValueError: ``multiple`` not an integer >= 1, or a batch with no scenarios (no leaves,
+        or leaves with no leading axis or different counts on it).
+    """
+    multiple = checks.integer("multiple", multiple)
+    counts = {jnp.shape(a)[0] if jnp.ndim(a) else None for a in jax.tree.leaves(batch)}
+    if len(counts) != 1 or None in counts or 0 in counts:
+        raise ValueError(f"batch must hold scenarios on axis 0 of every leaf, the same count in each; got leading sizes {sorted(counts, key=str)}")
+    n = counts.pop()
     pad = -n % multiple
     if pad == 0:
         return batch

@@ -12,7 +12,7 @@ import pytest
 from jaxflex.beam import BeamParams
 from jaxflex.montecarlo import MCConfig
 from jaxflex.plant import check_rk4_step, make_plant
-from jaxflex.scenarios import PlantPerturbation, ScenarioSpec, _paper_x0, check_plants, initial_condition, perturbed_params, sample_scenarios
+from jaxflex.scenarios import PlantPerturbation, ScenarioSpec, _paper_x0, check_plants, initial_condition, pad_batch, perturbed_params, sample_scenarios
 from tuning.tuner import TuneConfig
 
 N = 4000
@@ -206,3 +206,19 @@ def test_scenario_plant_and_modes_are_those_of_the_drawn_arm_and_refuse_a_non_sc
             scenario_modes_hz(arm, 2, bad)
         with pytest.raises(ValueError, match=r"scenario must be a Scenario \(build one with paper_scenario"):
             scenario_plant(arm, 2, 1e-3, "zoh", bad)
+
+
+def test_pad_batch_repeats_the_last_scenario_and_refuses_what_is_not_a_batch():
+    batch = sample_scenarios(ScenarioSpec(horizon_s=0.01, youngs_modulus_rel=0.1), jax.random.key(3), 5)
+    padded = pad_batch(batch, 4)  # 5 -> 8: three copies of scenario 4, the first 5 untouched
+    for leaf, orig in zip(jax.tree.leaves(padded), jax.tree.leaves(batch)):
+        assert leaf.shape[0] == 8
+        np.testing.assert_array_equal(leaf[:5], orig)
+        np.testing.assert_array_equal(leaf[5:], np.repeat(np.asarray(orig[-1:]), 3, axis=0))
+    assert pad_batch(batch, 5) is batch and pad_batch(batch, 1) is batch
+    with pytest.raises(ValueError, match=r"multiple must be an integer >= 1; got 0"):
+        pad_batch(batch, 0)
+    with pytest.raises(ValueError, match=r"batch must hold scenarios on axis 0 of every leaf, the same count in each; got leading sizes \[3, 4\]"):
+        pad_batch({"a": jnp.ones(3), "b": jnp.ones(4)}, 2)
+    with pytest.raises(ValueError, match=r"got leading sizes \[None\]"):
+        pad_batch(jnp.ones(()), 2)
