@@ -342,6 +342,41 @@ def test_a_nan_measurement_gives_a_nan_torque_and_a_diverged_run(defuzz, tempera
     assert bool(run(scenario.noise.at[50, 0].set(jnp.nan)).diverged)
 
 
+
+@pytest.mark.parametrize("defuzz", ["centroid", "singleton"])
+def test_a_nan_centre_under_jit_gives_a_nan_surface(defuzz):
+    """Traced centres are not checked; a NaN one must not give a finite torque. The select
+    min and max drop a NaN in one argument, so the surface tests the centres itself."""
+    params = fuzzy_params()
+    surface = jax.jit(lambda p, e, e_dot: fuzzy_surface(p, e, e_dot, defuzz=defuzz))
+    for field in ("angle_centres", "velocity_centres", "torque_centres"):
+        for i in range(5):
+            bad = params._replace(**{field: getattr(params, field).at[i].set(jnp.nan)})
+            for e, e_dot in ((0.3, 0.1), (-0.8, 0.6), (0.0, 0.0)):
+                assert np.isnan(float(surface(bad, e, e_dot))), (field, i, e, e_dot)
+            assert np.isfinite(float(surface(params, 0.3, 0.1)))
+
+
+def test_select_min_and_max_are_the_exact_ops_in_value_and_derivative():
+    """The faithful surface's min and max are compare-and-select (one x86 instruction) with
+    the derivative of jnp.minimum / jnp.maximum: equal values (a zero's sign aside), half
+    and half at a tie, and the NaN of the first argument kept."""
+    from jaxflex.controllers.fuzzy import _select_max, _select_min
+
+    v = np.array([-np.inf, -2.0, -0.0, 0.0, 0.5, 3.0, np.inf])
+    a, b = (x.ravel() for x in np.meshgrid(v, v))
+    for select, exact in ((_select_min, jnp.minimum), (_select_max, jnp.maximum)):
+        np.testing.assert_array_equal(jax.jit(select)(a, b), exact(a, b))
+        for ta, tb in ((1.0, 0.0), (0.0, 1.0), (0.3, -1.7)):
+            tangents = (jnp.full_like(a, ta), jnp.full_like(b, tb))
+            _, got = jax.jvp(select, (a, b), tangents)
+            _, want = jax.jvp(exact, (a, b), tangents)
+            np.testing.assert_array_equal(got, want)
+        grad = jax.grad(lambda x, y: select(x, y), argnums=(0, 1))
+        assert grad(0.25, 0.25) == (0.5, 0.5)
+        assert grad(0.25, 0.75) == ((1.0, 0.0) if exact is jnp.minimum else (0.0, 1.0))
+        assert np.isnan(float(select(jnp.nan, 0.5)))
+
 # -- 7. validation -----------------------------------------------------------------------------
 
 

@@ -290,6 +290,32 @@ def check_temperature(temperature: float, name: str = "temperature") -> float:
     return t
 
 
+def _select_op(exact, takes_b):
+    """``exact`` (``jnp.minimum`` or ``jnp.maximum``) computed as one compare and one select.
+
+    XLA lowers ``jnp.minimum`` and ``jnp.maximum`` to IEEE 754-2019 ``minimum``/``maximum``
+    (a NaN in either argument wins, -0 < +0), which x86 has no instruction for: LLVM expands
+    each into a min, compares and blends. ``where(b < a, b, a)`` is one ``vminps``. The two
+    agree except that a NaN in ``b`` is dropped and a zero result may carry the other sign;
+    ``_surface`` puts NaN back where an input or a centre is NaN. The derivative is
+    ``exact``'s (a tie splits half and half), so values and gradients are unchanged.
+    """
+
+    @jax.custom_jvp
+    def op(a: jax.Array, b: jax.typing.ArrayLike) -> jax.Array:
+        return jnp.where(takes_b(a, b), b, a)
+
+    @op.defjvp
+    def op_jvp(primals, tangents):
+        return op(*primals), jax.jvp(exact, primals, tangents)[1]
+
+    return op
+
+
+_select_min = _select_op(jnp.minimum, lambda a, b: b < a)
+_select_max = _select_op(jnp.maximum, lambda a, b: b > a)
+
+
 # -- Smooth primitives. Each is the exact operation at temperature 0 (branch taken once, at
 # -- trace time, on the Python float) and a C-infinity one with an O(temperature) error bound,
 # -- uniform in its arguments, for temperature > 0.
@@ -301,7 +327,7 @@ def _relu(x: jax.Array, temperature: float) -> jax.Array:
     Smooth: ``relu(x) < softplus <= relu(x) + T log 2``, the gap largest at the kink.
     """
     if temperature == 0:
-        return jnp.maximum(x, 0)
+        return _select_max(x, jnp.zeros_like(x))
     return temperature * jnp.logaddexp(x / temperature, 0.0)
 
 
@@ -312,7 +338,7 @@ def _clip(x: jax.Array, lo: jax.typing.ArrayLike, hi: jax.typing.ArrayLike, temp
     ``T log 2`` of the exact clip (the gap largest at the kinks ``lo`` and ``hi``).
     """
     if temperature == 0:
-        return jnp.clip(x, lo, hi)
+        return _select_min(_select_max(x, lo), hi)
     return lo + _relu(x - lo, temperature) - _relu(x - hi, temperature)
 
 
@@ -327,7 +353,7 @@ def _min(a: jax.Array, b: jax.Array, temperature: float) -> jax.Array:
     ties, where the Boltzmann operator is exponentially close.)
     """
     if temperature == 0:
-        return jnp.minimum(a, b)
+        return _select_min(a, b)
     return b + (a - b) * jax.nn.sigmoid((b - a) / temperature)
 
 
@@ -343,7 +369,7 @@ def _min_levels(a: jax.Array, b: jax.Array, temperature: float) -> jax.Array:
     fires.) Bounded gradient; a double ``where`` guards ``m -> 0`` (reached by underflow).
     """
     if temperature == 0:
-        return jnp.minimum(a, b)
+        return _select_min(a, b)
     m = b + (a - b) * jax.nn.sigmoid((a - b) / temperature)  # Boltzmann max, >= max(a, b) / 2
     # The derivative of b / m holds b / m^2: below sqrt(tiny) m^2 underflows to 0 (NaN
     # gradient). There the (negligible) exact min takes over, a jump of less than sqrt(tiny).
@@ -357,7 +383,7 @@ def _cap(x: jax.Array, hi: float, temperature: float) -> jax.Array:
     fixed, ``x - (softplus(x - hi) - softplus(-hi))``: increasing, in ``[0, x]``, within
     ``T log 2`` of the exact cap."""
     if temperature == 0:
-        return jnp.minimum(x, hi)
+        return _select_min(x, hi)
     return x - (_relu(x - hi, temperature) - temperature * math.log1p(math.exp(-hi / temperature)))
 
 
@@ -387,7 +413,7 @@ def _group_max(w: Sequence[jax.Array], groups: np.ndarray, n_groups: int, temper
             continue
         top = members[0]
         for w_r in members[1:]:
-            top = jnp.maximum(top, w_r)
+            top = _select_max(top, w_r)
         if temperature == 0 or len(members) == 1:
             out.append(top)
             continue
@@ -448,7 +474,7 @@ def _membership_list(x: jax.typing.ArrayLike, c: jax.Array, t: float) -> list[ja
         fall = 2 - frac[n - 2] if j == n - 1 else 1 - frac[j]
         peak = _min(rise, fall, t)  # <= 1 at T = 0; the smooth min may pass 1 by O(T)
         # T = 0: the faithful triangle (its upper clip is inactive).
-        out.append(jnp.maximum(peak, 0) if t == 0 else _clip(peak, 0.0, 1.0, t))
+        out.append(_select_max(peak, jnp.zeros_like(peak)) if t == 0 else _clip(peak, 0.0, 1.0, t))
     return out
 
 
@@ -515,13 +541,21 @@ def _surface(
     w = [_min_levels(mu_angle[i], mu_vel[j], t) for i, j in zip(idx.angle.tolist(), idx.velocity.tolist())]  # firing strengths
     if defuzz == "centroid":
         s = _group_max(w, idx.torque, c_out.shape[0], t)  # n_sets clip levels
-        return _centroid(s, c_out, t)
-    den, num = None, None  # "singleton" (the callers validate defuzz)
-    for w_r, k in zip(w, idx.torque.tolist()):
-        den, num = (w_r, w_r * c_out[k]) if den is None else (den + w_r, num + w_r * c_out[k])
-    if t > 0:
-        den = den + _no_fire_mass(t)
-    return _safe_ratio(num, den)
+        out = _centroid(s, c_out, t)
+    else:  # "singleton" (the callers validate defuzz)
+        den, num = None, None
+        for w_r, k in zip(w, idx.torque.tolist()):
+            den, num = (w_r, w_r * c_out[k]) if den is None else (den + w_r, num + w_r * c_out[k])
+        if t > 0:
+            den = den + _no_fire_mass(t)
+        out = _safe_ratio(num, den)
+    # The select min and max can drop a NaN (_select_op): a NaN input or centre gives NaN here,
+    # so that a NaN measurement gives a NaN torque and the run reports itself diverged.
+    nan_in = jnp.isnan(e) | jnp.isnan(e_dot)
+    for c in (params.angle_centres, params.velocity_centres, c_out):
+        for c_j in c:
+            nan_in = nan_in | jnp.isnan(c_j)
+    return jnp.where(nan_in, jnp.nan, out)
 
 
 def fuzzy_surface(
