@@ -153,7 +153,21 @@ def section_matmul(emit: Callable, runs: int) -> None:
 # -- flops -------------------------------------------------------------------------------------
 
 _ONE_FLOP = {"add", "sub", "mul", "div", "max", "min", "neg", "abs", "select_n", "gt", "lt", "ge", "le", "eq", "ne", "sign", "floor", "round", "clamp", "add_any"}
+_SELECT_MIN_MAX = (["lt", "select_n"], ["gt", "select_n"])  # controllers/fuzzy.py's _select_op
 _TRANSCENDENTAL = {"exp", "log", "log1p", "logistic", "tanh", "sin", "cos", "sqrt", "rsqrt", "expm1", "pow"}
+
+
+def _counted_names(jaxpr: Any) -> list[str]:
+    """The ``_ONE_FLOP`` primitives of a jaxpr in order, with those of nested jaxprs (``jit``)
+    in place (dtype conversions and other data movement left out)."""
+    names = []
+    for eqn in jaxpr.eqns:
+        inner = eqn.params.get("jaxpr")
+        if inner is not None:
+            names += _counted_names(getattr(inner, "jaxpr", inner))
+        elif eqn.primitive.name in _ONE_FLOP:
+            names.append(eqn.primitive.name)
+    return names
 
 
 def count_flops(jaxpr: Any) -> tuple[int, int]:
@@ -167,6 +181,9 @@ def count_flops(jaxpr: Any) -> tuple[int, int]:
         name = eqn.primitive.name
         out = eqn.outvars[0].aval if eqn.outvars else None
         size = int(np.prod(out.shape)) if out is not None and hasattr(out, "shape") else 1
+        if name == "custom_jvp_call" and _counted_names(eqn.params["call_jaxpr"].jaxpr) in _SELECT_MIN_MAX:
+            arith += size  # the fuzzy controller's min or max as compare and select: one op, as jnp.minimum
+            continue
         floating = out is not None and hasattr(out, "dtype") and np.issubdtype(out.dtype, np.floating)
         compare = name in {"gt", "lt", "ge", "le", "eq", "ne"} and np.issubdtype(eqn.invars[0].aval.dtype, np.floating)
         if name in _ONE_FLOP and (floating or compare):

@@ -146,6 +146,17 @@ def test_flop_count_of_a_known_jaxpr():
     assert count_flops(closed.jaxpr) == (2 * 3 * 4 + 3 + 3, 0)
 
 
+def test_flop_count_takes_the_fuzzy_select_min_and_max_as_one_op_each():
+    """The faithful fuzzy controller's min and max are compare-and-select custom_jvp calls:
+    each counts once, as jnp.minimum did, so the controller's count is the same either way."""
+    from jaxflex.controllers.fuzzy import _select_max, _select_min
+
+    x = jnp.ones(5)
+    selects = jax.make_jaxpr(lambda a, b: _select_max(_select_min(a, b), b) + 1.0)(x, x)
+    exact = jax.make_jaxpr(lambda a, b: jnp.maximum(jnp.minimum(a, b), b) + 1.0)(x, x)
+    assert count_flops(selects.jaxpr) == count_flops(exact.jaxpr) == (15, 0)
+
+
 def test_gradient_operation_counts_find_the_forward_and_reverse_scans():
     """value_and_grad of the DFS loop holds one forward scan, which does the forward step's
     work and writes residuals, and one reverse scan; XLA's counts are per scenario."""
