@@ -344,17 +344,23 @@ def test_a_nan_measurement_gives_a_nan_torque_and_a_diverged_run(defuzz, tempera
 
 
 @pytest.mark.parametrize("defuzz", ["centroid", "singleton"])
-def test_a_nan_centre_under_jit_gives_a_nan_surface(defuzz):
-    """Traced centres are not checked; a NaN one must not give a finite torque. The select
-    min and max drop a NaN in one argument, so the surface tests the centres itself."""
+def test_traced_centres_that_check_refuses_give_a_nan_surface(defuzz):
+    """Traced centres are not checked, and the select min and max drop a NaN in one argument
+    (a NaN centre, or inf - inf and 0 / 0 in the memberships of infinite or equal centres gave
+    a finite torque with them), so the surface tests the centres itself: NaN, infinite, equal
+    or decreasing neighbours give NaN, for the input on a centre or between centres."""
     params = fuzzy_params()
     surface = jax.jit(lambda p, e, e_dot: fuzzy_surface(p, e, e_dot, defuzz=defuzz))
+    points = ((0.3, -0.2), (-0.8, 0.6), (0.0, 0.0), (-0.5, -0.5))
     for field in ("angle_centres", "velocity_centres", "torque_centres"):
-        for i in range(5):
-            bad = params._replace(**{field: getattr(params, field).at[i].set(jnp.nan)})
-            for e, e_dot in ((0.3, 0.1), (-0.8, 0.6), (0.0, 0.0)):
-                assert np.isnan(float(surface(bad, e, e_dot))), (field, i, e, e_dot)
-            assert np.isfinite(float(surface(params, 0.3, 0.1)))
+        c = getattr(params, field)
+        bad = [c.at[i].set(v) for i in range(5) for v in (jnp.nan, jnp.inf, -jnp.inf)]
+        bad += [c.at[i + 1].set(c[i]) for i in range(4)] + [c.at[i + 1].set(c[i] - 0.1) for i in range(4)]
+        for centres in bad:
+            for e, e_dot in points:
+                assert np.isnan(float(surface(params._replace(**{field: centres}), e, e_dot))), (field, centres, e, e_dot)
+    for e, e_dot in points:
+        assert np.isfinite(float(surface(params, e, e_dot)))
 
 
 def test_select_min_and_max_are_the_exact_ops_in_value_and_derivative():

@@ -297,8 +297,9 @@ def _select_op(exact, takes_b):
     (a NaN in either argument wins, -0 < +0), which x86 has no instruction for: LLVM expands
     each into a min, compares and blends. ``where(b < a, b, a)`` is one ``vminps``. The two
     agree except that a NaN in ``b`` is dropped and a zero result may carry the other sign;
-    ``_surface`` puts NaN back where an input or a centre is NaN. The derivative is
-    ``exact``'s (a tie splits half and half), so values and gradients are unchanged.
+    ``_surface`` puts NaN back where one could arise. The derivative is ``exact``'s (a tie
+    splits half and half), so values and derivatives are ``exact``'s, up to those two cases
+    and the rounding of XLA's fusion of the compiled program.
     """
 
     @jax.custom_jvp
@@ -321,13 +322,9 @@ _select_max = _select_op(jnp.maximum, lambda a, b: b > a)
 # -- uniform in its arguments, for temperature > 0.
 
 
-def _relu(x: jax.Array, temperature: float) -> jax.Array:
-    """``max(x, 0)``; softplus ``T * log(1 + exp(x / T))`` (stable form) for ``T > 0``.
-
-    Smooth: ``relu(x) < softplus <= relu(x) + T log 2``, the gap largest at the kink.
-    """
-    if temperature == 0:
-        return _select_max(x, jnp.zeros_like(x))
+def _softplus(x: jax.Array, temperature: float) -> jax.Array:
+    """The smooth ``max(x, 0)`` for ``T > 0``: ``T * log(1 + exp(x / T))`` (stable form),
+    with ``max(x, 0) < softplus <= max(x, 0) + T log 2``, the gap largest at the kink."""
     return temperature * jnp.logaddexp(x / temperature, 0.0)
 
 
@@ -339,7 +336,7 @@ def _clip(x: jax.Array, lo: jax.typing.ArrayLike, hi: jax.typing.ArrayLike, temp
     """
     if temperature == 0:
         return _select_min(_select_max(x, lo), hi)
-    return lo + _relu(x - lo, temperature) - _relu(x - hi, temperature)
+    return lo + _softplus(x - lo, temperature) - _softplus(x - hi, temperature)
 
 
 def _min(a: jax.Array, b: jax.Array, temperature: float) -> jax.Array:
@@ -384,7 +381,7 @@ def _cap(x: jax.Array, hi: float, temperature: float) -> jax.Array:
     ``T log 2`` of the exact cap."""
     if temperature == 0:
         return _select_min(x, hi)
-    return x - (_relu(x - hi, temperature) - temperature * math.log1p(math.exp(-hi / temperature)))
+    return x - (_softplus(x - hi, temperature) - temperature * math.log1p(math.exp(-hi / temperature)))
 
 
 def _group_max(w: Sequence[jax.Array], groups: np.ndarray, n_groups: int, temperature: float) -> list[jax.Array]:
@@ -549,13 +546,18 @@ def _surface(
         if t > 0:
             den = den + _no_fire_mass(t)
         out = _safe_ratio(num, den)
-    # The select min and max can drop a NaN (_select_op): a NaN input or centre gives NaN here,
-    # so that a NaN measurement gives a NaN torque and the run reports itself diverged.
-    nan_in = jnp.isnan(e) | jnp.isnan(e_dot)
-    for c in (params.angle_centres, params.velocity_centres, c_out):
-        for c_j in c:
-            nan_in = nan_in | jnp.isnan(c_j)
-    return jnp.where(nan_in, jnp.nan, out)
+    # The select min and max drop a NaN in one argument (_select_op), so NaN is put back here
+    # where one could arise: a NaN input (a NaN measurement must give a NaN torque, and the
+    # run report itself diverged) or centres that check() refuses, which reach here traced
+    # (not finite, or not strictly increasing: inf - inf or 0 / 0 in the memberships). The
+    # centres' test is shared by a batch: scalars under vmap unless the centres are batched.
+    centres_ok = None
+    for c in (params.angle_centres.astype(dtype), params.velocity_centres.astype(dtype), c_out):
+        ok = jnp.isfinite(c[0]) & jnp.isfinite(c[-1])
+        for j in range(c.shape[0] - 1):
+            ok = ok & (c[j] < c[j + 1])
+        centres_ok = ok if centres_ok is None else centres_ok & ok
+    return jnp.where(jnp.isnan(e) | jnp.isnan(e_dot) | ~centres_ok, jnp.nan, out)
 
 
 def fuzzy_surface(
