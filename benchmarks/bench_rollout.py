@@ -312,7 +312,7 @@ def section_memory(emit: Callable, batch: int) -> None:
             x0, force, noise = bench_inputs(batch, horizon, jnp.float32)
 
             def f(p, x0, force, noise):
-                return jax.vmap(lambda x: rollout(plant, ctrl, p, Scenario(x, force, noise), output=output))(x0)
+                return rollout(plant, ctrl, p, Scenario(x0, force, noise), output=output)
 
             compiled = jax.jit(f).lower(params, x0, force, noise).compile()
             m = compiled.memory_analysis()
@@ -366,7 +366,7 @@ def check_baselines(batch: int = 8, horizon: int = 300, skfuzzy_horizon: int = 3
         for controller in controllers:
             for defuzz in ("centroid", "singleton") if "fuzzy" in controller else ("centroid",):
                 ctrl, params = controller_and_params(controller, defuzz, jnp.float64)
-                traj = jax.vmap(lambda x: rollout(plant, ctrl, params, Scenario(x, force, noise)))(x0)
+                traj = rollout(plant, ctrl, params, Scenario(x0, force, noise))
                 ref = bl.numpy_closed_loop(pa, bl.loop_spec(controller, defuzz), np.asarray(x0), np.asarray(force), np.asarray(noise), record=True)
                 err = max(_rel_err(ref["x"].transpose(1, 0, 2), traj.x), _rel_err(ref["u"].T, traj.u[..., 0]) if controller != "open_loop" else 0.0)
                 rows.append({"kind": "baseline_check", "baseline": "numpy", "controller": controller, "defuzz": defuzz if "fuzzy" in controller else None, "max_rel_err": err, "rtol": RTOL_NUMPY})
@@ -537,6 +537,8 @@ def section_ab(emit: Callable, runs: int, horizon: int, batch: int, grad_batch: 
                 x0, force, noise = bench_inputs(b, horizon, jnp.float32)
 
                 def metrics(p, x0, r_mod=r_mod, ctrl=ctrl, force=force, noise=noise):
+                    if r_mod is new_rollout:  # a batch in one rollout (a controller built by the old fuzzy module is mapped with vmap)
+                        return r_mod.rollout(plant, ctrl, p, Scenario(x0, force, noise), output="metrics")
                     return jax.vmap(lambda x: r_mod.rollout(plant, ctrl, p, Scenario(x, force, noise), output="metrics"))(x0)
 
                 fn = jax.jit(metrics) if mode == "forward" else jax.jit(jax.value_and_grad(lambda p, x0, m=metrics: jnp.mean(m(p, x0).tip_ise)))

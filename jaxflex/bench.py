@@ -4,7 +4,8 @@ The edge behind ``jaxflex bench`` (and the measuring core of ``benchmarks/bench_
 One configuration is a controller, a sampling method, a dtype, a batch of scenarios, a
 horizon and a mode:
 
-* ``"forward"``: ``jit(vmap(rollout(..., output="metrics")))`` over the batch;
+* ``"forward"``: ``jit(rollout(..., output="metrics"))`` of the whole batch (one rollout of
+  ``B`` scenarios, as the Monte Carlo runner and the tuner run them);
 * ``"grad"``: ``jit(value_and_grad)`` of the batch-mean tip ISE with respect to every
   controller parameter (the whole parameter pytree), through the same rollout.
 
@@ -166,8 +167,7 @@ def make_benchmark(cfg: BenchConfig) -> tuple[Callable, tuple]:
         x0 = jax.device_put(x0, NamedSharding(mesh, PartitionSpec("batch")))
 
     def metrics(params, x0):
-        one = lambda x: rollout(plant, controller, params, Scenario(x, force, noise), output="metrics")  # noqa: E731
-        return jax.vmap(one)(x0)
+        return rollout(plant, controller, params, Scenario(x0, force, noise), output="metrics")
 
     if cfg.mode == "forward":
         return jax.jit(metrics), (params, x0)

@@ -56,7 +56,9 @@ class DelayState(NamedTuple):
 
     Attributes:
       buffer: [capacity + 1, n] past samples; slot ``head - 1`` (mod size) is the newest.
-      head: shape () int32, the slot the next sample is written to.
+        A batch of lines shares the slots: ``[capacity + 1, n, B]``, one contiguous row of
+        the batch per slot.
+      head: shape () int32, the slot the next sample is written to (shared by a batch).
     """
 
     buffer: jax.Array
@@ -76,17 +78,18 @@ def check_capacity(capacity: int) -> int:
 
 
 def delay_init(y0: ArrayLike, capacity: int) -> DelayState:
-    """A delay line whose whole history equals ``y0`` [n]."""
+    """A delay line whose whole history equals ``y0`` [n] (or a batch of lines, ``y0``
+    [n, B]: every sample pushed and read is then [n, B])."""
     capacity = check_capacity(capacity)
     y0 = jnp.asarray(y0)
-    if y0.ndim != 1:
-        raise ValueError(f"y0 must have shape (n,); got {y0.shape}")
-    buffer = jnp.broadcast_to(y0[None, :], (capacity + 1, y0.shape[0]))
+    if y0.ndim not in (1, 2):
+        raise ValueError(f"y0 must have shape (n,), or (n, B) for a batch of lines; got {y0.shape}")
+    buffer = jnp.broadcast_to(y0[None], (capacity + 1,) + y0.shape)
     return DelayState(buffer, jnp.zeros((), jnp.int32))
 
 
 def delay_push(state: DelayState, y: jax.Array) -> DelayState:
-    """Write the newest sample ``y`` [n]."""
+    """Write the newest sample ``y`` [n] ([n, B] for a batch of lines)."""
     if jnp.shape(y) != state.buffer.shape[1:]:
         raise ValueError(f"y must have shape {state.buffer.shape[1:]} (one value per channel of the line); got {jnp.shape(y)}")
     size = state.buffer.shape[0]
@@ -95,7 +98,7 @@ def delay_push(state: DelayState, y: jax.Array) -> DelayState:
 
 
 def delay_read(state: DelayState, delay_steps: ArrayLike, interpolation: str = "nearest") -> jax.Array:
-    """The sample ``delay_steps`` before the newest one, [n].
+    """The sample ``delay_steps`` before the newest one, [n] ([n, B] for a batch of lines).
 
     Args:
       state: the delay line after the current sample was pushed.
@@ -133,7 +136,7 @@ def delay_read(state: DelayState, delay_steps: ArrayLike, interpolation: str = "
                     w = w * (t - j) / (i - j)
             weights.append(w)
         index = (newest - start.astype(jnp.int32) - jnp.arange(n_pts, dtype=jnp.int32)) % size
-        return jnp.stack(weights) @ state.buffer[index]
+        return jnp.tensordot(jnp.stack(weights), state.buffer[index], axes=1)
     raise ValueError(f"interpolation must be one of {INTERPOLATIONS}; got {interpolation!r}")
 
 

@@ -2,7 +2,7 @@
 
 Chunk ``i`` holds the scenarios drawn from ``jax.random.fold_in(key(seed), i)``, so every
 scenario is fixed by the seed and its chunk alone, whatever the number of devices or the
-order in which chunks run. Each chunk is one jitted, vmapped ``rollout(output="metrics")``
+order in which chunks run. Each chunk is one jitted, batched ``rollout(output="metrics")``
 with its scenario axis sharded over all local devices (``jax.sharding``; on a CPU the
 ``jaxflex montecarlo`` command makes one device per core, ``--cpu-devices``); only per-scenario
 scalar metrics come back, so memory grows with the chunk, not with N x horizon. Each
@@ -191,14 +191,14 @@ class _Runner:
         self.sharding = NamedSharding(Mesh(np.array(devices), ("scenarios",)), PartitionSpec("scenarios"))
         self.key = jax.random.key(config.seed)
 
-        def one(scenario: Scenario) -> dict[str, jax.Array]:
-            plant = self.nominal if scenario.plant is None else scenario_plant(self.beam, config.n_modes, spec.dt, config.method, scenario)
-            freqs = scenario_modes_hz(self.beam, config.n_modes, scenario)
-            closed = rollout(plant, self.controller, self.params, scenario, output="metrics", mode_freqs_hz=freqs)
-            opened = rollout(plant, open_loop(), OpenLoopParams(), scenario, output="metrics", mode_freqs_hz=freqs)
-            return _metrics_row(closed, opened.modal_energy)
+        def evaluate(batch: Scenario) -> dict[str, jax.Array]:
+            plant = self.nominal if batch.plant is None else jax.vmap(lambda s: scenario_plant(self.beam, config.n_modes, spec.dt, config.method, s))(batch)
+            freqs = jax.vmap(lambda s: scenario_modes_hz(self.beam, config.n_modes, s))(batch)
+            closed = rollout(plant, self.controller, self.params, batch, output="metrics", mode_freqs_hz=freqs)
+            opened = rollout(plant, open_loop(), OpenLoopParams(), batch, output="metrics", mode_freqs_hz=freqs)
+            return jax.vmap(_metrics_row)(closed, opened.modal_energy)
 
-        self.evaluate = jax.jit(jax.vmap(one))
+        self.evaluate = jax.jit(evaluate)
 
     def sample(self, index: int) -> Scenario:
         spec = self.config.scenarios if index == 0 else dataclasses.replace(self.config.scenarios, include_paper=False)

@@ -3,19 +3,29 @@
 At sample k the controller sees ``y[k] = C x[k] + noise[k]``, returns ``u[k]``, and the
 plant advances ``x[k+1] = Ad x[k] + Bd u[k] + Ed force[k]`` (inputs held over the sample).
 
-``rollout`` is pure, unjitted and unbatched: callers compose ``jax.jit``, ``jax.vmap``
-(over scenarios, plants or parameters) and ``jax.grad`` around it. With
-``output="metrics"`` the same loop keeps only running metrics in its carry
-(:class:`RunMetrics`), so memory does not grow with the horizon.
+``rollout`` is pure and unjitted: callers compose ``jax.jit``, ``jax.vmap`` (over
+scenarios, plants or parameters) and ``jax.grad`` around it. It also runs a batch of
+scenarios itself (``scenario.x0`` of shape ``[B, n_x]``, with an optional batch of plants
+and per-scenario inputs), which is how the Monte Carlo runner, the tuner and the benchmark
+call it, and faster than ``vmap`` over single scenarios (below). With ``output="metrics"``
+the same loop keeps only running metrics in its carry (:class:`RunMetrics`), so memory does
+not grow with the horizon.
 
 How the loop is laid out (same arithmetic, measured in ``benchmarks/README.md``; a bare
 ``Ad @ x`` loop under ``vmap`` on CPU runs 5.5x faster state-major than with a vector state):
 
+* A batch is the last axis of every value in the loop: the state components are ``[B]``,
+  the measurement ``[2, B]``, a controller's ring buffer ``[slots, 1, B]``. ``vmap`` puts
+  the batch first in every carry instead, so a ring buffer would be ``[B, slots]`` and each
+  sample's write and read strided, one cache line per scenario; with the batch last they
+  are one contiguous row. The built-in controllers take the batch as it is
+  (``Controller.batched``); others are mapped over it with ``vmap``. A single scenario is
+  the same loop with no batch axis.
 * The state is carried as a tuple of its ``n_x`` components, and ``Ad @ x`` is written out
-  as ``n_x^2`` multiply-adds. Under ``vmap`` each component is then one contiguous
-  ``[batch]`` array (batch as the minor axis, state-major), so every operation of a step is
-  elementwise over the batch and XLA fuses it; a vector state would be ``[batch, n_x]``
-  with the batch first, and its small matvecs run several times slower.
+  as ``n_x^2`` multiply-adds. Each component is then one contiguous ``[B]`` array
+  (state-major), so every operation of a step is elementwise over the batch and XLA fuses
+  it; a vector state would be ``[B, n_x]`` with the batch first, and its small matvecs run
+  several times slower.
 * The loop is rotated: iteration k updates the metrics with ``(x[k], u[k])``, advances the
   plant to ``x[k+1]`` and runs the controller at ``k + 1``, so ``u`` is a loop-carried value.
   Computed and consumed in the same iteration, ``u`` would be recomputed by XLA inside each
@@ -106,9 +116,10 @@ class RunMetrics(NamedTuple):
 OUTPUTS = ("trajectory", "metrics")
 
 
-def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settling_band: Any, mode_freqs_hz: Any) -> float:
+def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settling_band: Any, mode_freqs_hz: Any) -> tuple[tuple[int, ...], float]:
     """Shapes and dtypes of the loop's inputs, and the metrics' options, named when wrong;
-    returns ``settling_band`` as a Python float (a constant of the loop)."""
+    returns the batch shape (``()`` or ``(B,)``, from ``scenario.x0``) and ``settling_band``
+    as a Python float (a constant of the loop)."""
     check_sampled(plant)
     check_scenario(scenario)
     for name in ("x0", "force", "noise"):
@@ -116,15 +127,25 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
         if not isinstance(value, (jax.Array, np.ndarray)):
             raise ValueError(f"scenario.{name} must be an array in the plant's dtype (jnp.asarray(..., dtype)); got {type(value).__name__}")
     n_x = plant.Ad.shape[-1]
-    if plant.Ad.shape != (n_x, n_x):
-        raise ValueError(f"Ad must be square; got {plant.Ad.shape}")
-    if scenario.x0.shape != (n_x,):
-        raise ValueError(f"scenario.x0 must have shape ({n_x},) for this plant; got {scenario.x0.shape}")
-    steps = scenario.force.shape[0] if scenario.force.ndim == 2 else -1
-    if scenario.force.shape != (steps, 1) or steps < 1:
-        raise ValueError(f"scenario.force must have shape (T, 1) with T >= 1; got {scenario.force.shape}")
-    if scenario.noise.shape != (steps, 2):
-        raise ValueError(f"scenario.noise must have shape ({steps}, 2); got {scenario.noise.shape}")
+    if plant.Ad.ndim not in (2, 3) or plant.Ad.shape[-2] != n_x:
+        raise ValueError(f"Ad must be square, [n_x, n_x], or a batch of plants [B, n_x, n_x]; got {plant.Ad.shape}")
+    if scenario.x0.ndim not in (1, 2) or scenario.x0.shape[-1] != n_x:
+        raise ValueError(f"scenario.x0 must have shape ({n_x},) for this plant, or (B, {n_x}) for a batch of B scenarios; got {scenario.x0.shape}")
+    batch = tuple(scenario.x0.shape[:-1])
+    shared = "shared by the batch" if batch else "one scenario"
+    steps = scenario.force.shape[-2] if scenario.force.ndim >= 2 else -1
+    if scenario.force.shape not in ((steps, 1), batch + (steps, 1)) or steps < 1:
+        raise ValueError(f"scenario.force must have shape (T, 1) with T >= 1 ({shared}){f', or {batch + (-1, 1)} with the batch first' if batch else ''}; got {scenario.force.shape}")
+    if scenario.noise.shape not in ((steps, 2), batch + (steps, 2)):
+        raise ValueError(f"scenario.noise must have shape ({steps}, 2){f' or {batch + (steps, 2)}' if batch else ''}; got {scenario.noise.shape}")
+    plant_batch = tuple(plant.Ad.shape[:-2])
+    if plant_batch and plant_batch != batch:
+        raise ValueError(f"a batch of plants {plant.Ad.shape} needs a batch of as many scenarios (scenario.x0 of shape {plant_batch + (n_x,)}); got scenario.x0 of shape {scenario.x0.shape}")
+    for name, rows, cols in (("Bd", n_x, 1), ("Ed", n_x, 1), ("C", 2, n_x), ("Cz", 3, n_x)):
+        if getattr(plant, name).shape != plant_batch + (rows, cols):
+            raise ValueError(f"plant.{name} must have shape {plant_batch + (rows, cols)} to match Ad {plant.Ad.shape}; got {getattr(plant, name).shape}")
+    if jnp.shape(plant.dt) != plant_batch:
+        raise ValueError(f"plant.dt must have shape {plant_batch} to match Ad {plant.Ad.shape}; got {jnp.shape(plant.dt)}")
     dtype = plant.Ad.dtype
     for name in ("x0", "force", "noise"):
         value = getattr(scenario, name)
@@ -148,11 +169,11 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
         if is_concrete(mode_freqs_hz):
             checks.real_array("mode_freqs_hz", mode_freqs_hz)
         freqs = jnp.asarray(mode_freqs_hz)
-        if freqs.ndim > 1:
-            raise ValueError(f"mode_freqs_hz must be a 1-D array of frequencies (Hz); got shape {freqs.shape}")
+        if freqs.ndim > 1 + len(batch) or (freqs.ndim == 2 and freqs.shape[0] != batch[0]):
+            raise ValueError(f"mode_freqs_hz must be a 1-D array of frequencies (Hz){f', or {batch[0]} of them (one row per scenario)' if batch else ''}; got shape {freqs.shape}")
         if is_concrete(freqs) and not np.all(np.isfinite(np.asarray(freqs)) & (np.asarray(freqs) >= 0)):  # NumPy: no tracer under jit
             raise ValueError(f"mode_freqs_hz must be finite frequencies >= 0 (Hz); got {np.asarray(freqs)}")
-    return float(settling_band)
+    return batch, float(settling_band)
 
 
 def rollout(
@@ -168,18 +189,21 @@ def rollout(
     """Simulate the closed loop over the scenario's horizon.
 
     Args:
-      plant: sampled plant (``plant.discretize``).
+      plant: sampled plant (``plant.discretize``); for a batch of scenarios, one plant for
+        all or a batch of B plants (every field with a leading B axis).
       controller: any :class:`~jaxflex.controllers.base.Controller`.
       params: the controller's parameter pytree (leaves may be traced).
-      scenario: one unbatched scenario, in the plant's dtype; the horizon T is
-        ``scenario.force.shape[0]``. Its ``plant`` perturbation is not applied here: pass
-        the perturbed plant, ``scenarios.scenario_plant(...)``, as ``plant``.
+      scenario: one scenario, in the plant's dtype (``x0`` [n_x], ``force`` [T, 1],
+        ``noise`` [T, 2]), or a batch of B: ``x0`` [B, n_x], with ``force`` [B, T, 1] and
+        ``noise`` [B, T, 2] or shared by the batch ([T, 1], [T, 2]). Its ``plant``
+        perturbation is not applied here: pass the perturbed plant,
+        ``scenarios.scenario_plant(...)`` (``vmap`` it for a batch), as ``plant``.
       output: ``"trajectory"`` (every sample, memory O(T)) or ``"metrics"`` (running
         metrics only, memory O(1) in T).
       settling_band: band of the running settling time, as a fraction of the peak, in (0, 1):
         a number or a concrete 0-d array.
       mode_freqs_hz: [n_f] frequencies (Hz, finite, >= 0) of ``RunMetrics.modal_energy``
-        (metrics only).
+        (metrics only); for a batch, shared or [B, n_f].
 
     Raises:
       ValueError: naming a plant that is not a DiscretePlant, a controller that is not a
@@ -190,51 +214,64 @@ def rollout(
         NaN instead and reports itself diverged).
 
     Returns:
-      Trajectory with fields [T, ...], or RunMetrics. A loop that diverges returns
+      Trajectory with fields [T, ...], or RunMetrics; for a batch, each field with a leading
+      B axis (as ``vmap`` over single scenarios gives them). A loop that diverges returns
       non-finite or huge values; ``RunMetrics.diverged`` and
       :func:`jaxflex.analysis.metrics.diverged` report it.
     """
     check_controller("controller", controller)
-    settling_band = _check_inputs(plant, scenario, params, settling_band, mode_freqs_hz)
+    batch, settling_band = _check_inputs(plant, scenario, params, settling_band, mode_freqs_hz)
     if output not in OUTPUTS:
         raise ValueError(f"output must be one of {OUTPUTS}; got {output!r}")
     # The sample times first: parameters checked against another dt give misleading messages.
-    if controller.dt is not None and is_concrete(plant.dt) and not same_dt(controller.dt, float(plant.dt)):
-        raise ValueError(f"the controller was built for dt = {controller.dt:g} s but the plant is sampled at dt = {float(plant.dt):g} s: build both with one dt")
+    if controller.dt is not None and is_concrete(plant.dt) and not np.all(same_dt(controller.dt, np.asarray(plant.dt, np.float64))):
+        raise ValueError(f"the controller was built for dt = {controller.dt:g} s but the plant is sampled at dt = {np.asarray(plant.dt).ravel()[0]:g} s: build both with one dt")
     if is_concrete(params):
         controller.check(params)
 
-    n_x = plant.Ad.shape[0]
-    steps = scenario.force.shape[0]
-    # A plant closed over by jit (concrete) as NumPy matrices, so that _dot sees their zeros;
-    # a traced plant (a batch of plants) as it is.
+    n_x = plant.Ad.shape[-1]
+    steps = scenario.force.shape[-2]
+    # Inside the loop every per-scenario value carries the batch as its last axis (shape
+    # ``batch`` = () or (B,)): moved there once, before the loop.
+    last = (lambda a: jnp.moveaxis(a, 0, -1)) if batch else (lambda a: a)
     maps = (plant.Ad, plant.Bd, plant.Ed, plant.C, plant.Cz)
-    Ad, Bd, Ed, C, Cz = (np.asarray(m) for m in maps) if is_concrete(maps) else maps
+    if plant.Ad.ndim == 3:  # a batch of plants: [n, m, B]
+        Ad, Bd, Ed, C, Cz = (last(m) for m in maps)
+    else:  # closed over by jit (concrete): NumPy matrices, so that _dot sees their zeros
+        Ad, Bd, Ed, C, Cz = (np.asarray(m) for m in maps) if is_concrete(maps) else maps
+    dt_plant = last(plant.dt) if jnp.ndim(plant.dt) else plant.dt
+    init, step = controller.init, controller.step
+    if batch and not controller.batched:  # a controller written for one scenario
+        init = jax.vmap(init, in_axes=(None, -1), out_axes=-1)
+        step = jax.vmap(step, in_axes=(None, -1, -1), out_axes=-1)
 
     # The measurement of the next sample from the current one: y[k+1] = C x[k+1] + noise[k+1]
     # = (C Ad) x[k] + (C Bd) u[k] + (C Ed) force[k] + noise[k+1], with the products formed
     # once, outside the loop.
-    next_y = (C @ Ad, C @ Bd, C @ Ed)  # [2, n_x], [2, 1], [2, 1]
+    next_y = tuple(_matmul(C, m) for m in (Ad, Bd, Ed))  # [2, n_x], [2, 1], [2, 1]
 
     def advance(x, state, u, force, noise_next):
         """Sample k -> k + 1: the plant under the held u[k], then the controller at k + 1."""
         x_next = _affine((Ad, Bd, Ed), x, u, force)
         y_next = jnp.stack([y_i + noise_next[i] for i, y_i in enumerate(_affine(next_y, x, u, force))])
-        state, u_next = controller.step(params, state, y_next)
+        state, u_next = step(params, state, y_next)
         return x_next, state, u_next, y_next
 
     # A traced plant (under jit) cannot refuse another dt than the controller's: its run is
     # NaN from the start and reports itself diverged.
-    x0 = tuple(scenario.x0[i] for i in range(n_x))
+    x0 = tuple(scenario.x0[..., i] for i in range(n_x))
     if not is_concrete(plant.dt) and controller.dt is not None:
-        x0 = tuple(jnp.where(same_dt(controller.dt, plant.dt), x_i, jnp.nan) for x_i in x0)
-    y0 = jnp.stack(_matvec(C, x0)) + scenario.noise[0]
-    state1, u0 = controller.step(params, controller.init(params, y0), y0)
-    if jnp.shape(u0) != (1,):
-        raise ValueError(f"the controller's step must return the torque u with shape (1,) (N*m); got shape {jnp.shape(u0)}")
+        x0 = tuple(jnp.where(same_dt(controller.dt, dt_plant), x_i, jnp.nan) for x_i in x0)
+    # The inputs time-major: [T, 1] and [T, 2] shared by the batch, or [T, 1, B] and [T, 2, B].
+    force = last(scenario.force) if scenario.force.ndim == 3 else scenario.force
+    noise = last(scenario.noise) if scenario.noise.ndim == 3 else scenario.noise
+    y0 = jnp.stack([y_i + noise[0][i] for i, y_i in enumerate(_matvec(C, x0))])
+    state1, u0 = step(params, init(params, y0), y0)
+    if jnp.shape(u0) != (1,) + batch:
+        raise ValueError(f"the controller's step must return the torque u with shape {(1,) + batch} (N*m{', a trailing batch axis when batched' if batch else ''}); got shape {jnp.shape(u0)}")
     # noise[k + 1] for iteration k; the last iteration's controller step (its u[T] is never
     # used) sees zero noise.
-    inputs = (scenario.force, jnp.concatenate([scenario.noise[1:], jnp.zeros_like(scenario.noise[:1])]))
+    inputs = (force, jnp.concatenate([noise[1:], jnp.zeros_like(noise[:1])]))
     if output == "trajectory":
 
         def body(carry, inputs):
@@ -242,14 +279,18 @@ def rollout(
             record = (jnp.stack(x), u, y, jnp.stack(_matvec(Cz, x)))
             return advance(x, state, u, *inputs), record
 
-        _, (x, u, y, z) = jax.lax.scan(body, (x0, state1, u0, y0), inputs)
-        t = jnp.arange(steps, dtype=x.dtype) * plant.dt
-        return Trajectory(t, x, u, y, z)
+        _, records = jax.lax.scan(body, (x0, state1, u0, y0), inputs)
+        x, u, y, z = (jnp.moveaxis(r, -1, 0) for r in records) if batch else records  # [B, T, n]
+        dt = jnp.asarray(plant.dt, x.dtype)
+        t = jnp.arange(steps, dtype=x.dtype).reshape((1,) * dt.ndim + (steps,)) * dt[..., None]  # [T] or [B, T]
+        return Trajectory(jnp.broadcast_to(t, x.shape[:-1]), x, u, y, z)
 
     dtype = scenario.x0.dtype
-    zero = jnp.zeros((), dtype)
-    dt = plant.dt.astype(dtype)
-    omega = 2 * jnp.pi * jnp.zeros((0,), dtype) if mode_freqs_hz is None else 2 * jnp.pi * jnp.asarray(mode_freqs_hz, dtype).reshape(-1)
+    zero = jnp.zeros(batch, dtype)
+    dt = jnp.broadcast_to(jnp.asarray(dt_plant).astype(dtype), batch)  # a shared constant is free to broadcast
+    # [n_f, *batch]: the frequencies shared by the batch or one row per scenario
+    freqs = jnp.zeros((0,), dtype) if mode_freqs_hz is None else jnp.asarray(mode_freqs_hz, dtype)
+    omega = 2 * jnp.pi * (last(freqs) if freqs.ndim == 2 else jnp.broadcast_to(freqs.reshape((-1,) + (1,) * len(batch)), freqs.shape + batch))
 
     def metrics_body(carry, inputs):
         x, state, u, k, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x, dft_re, dft_im = carry
@@ -271,19 +312,21 @@ def rollout(
             ise_t + tip**2 * dt,
             iae_t + jnp.abs(tip) * dt,
             ise_h + hub**2 * dt,
-            effort + jnp.sum(u**2) * dt,
+            effort + jnp.sum(u**2, axis=0) * dt,
             peak_x,
-            dft_re + windowed * jnp.cos(omega * t_k),
-            dft_im - windowed * jnp.sin(omega * t_k),
+            dft_re + windowed[None] * jnp.cos(omega * t_k[None]),
+            dft_im - windowed[None] * jnp.sin(omega * t_k[None]),
         )
         return carry, None
 
-    carry0 = (x0, state1, u0, jnp.zeros((), jnp.int32), zero, jnp.full((), -1, jnp.int32), zero, zero, zero, zero, zero, jnp.zeros_like(omega), jnp.zeros_like(omega))
+    dft0 = jnp.zeros_like(omega)
+    carry0 = (x0, state1, u0, jnp.zeros((), jnp.int32), zero, jnp.full(batch, -1, jnp.int32), zero, zero, zero, zero, zero, dft0, dft0)
     final, _ = jax.lax.scan(metrics_body, carry0, inputs)
     x_end, _, _, _, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x, dft_re, dft_im = final
     settling = jnp.where(last_out >= steps - 1, jnp.inf, (last_out + 1).astype(dtype) * dt)
     diverged = ~jnp.isfinite(peak_x) | (peak_x > DIVERGENCE_THRESHOLD)
-    return RunMetrics(peak, ise_t, iae_t, ise_h, effort, x_end[0], settling, peak_x, diverged, dft_re**2 + dft_im**2)
+    energy = dft_re**2 + dft_im**2
+    return RunMetrics(peak, ise_t, iae_t, ise_h, effort, x_end[0], settling, peak_x, diverged, jnp.moveaxis(energy, 0, -1) if batch else energy)
 
 
 def _dot(row: jax.Array | np.ndarray, x: tuple[jax.Array, ...]) -> jax.Array:
@@ -299,6 +342,14 @@ def _dot(row: jax.Array | np.ndarray, x: tuple[jax.Array, ...]) -> jax.Array:
     for j in terms[1:]:
         total = total + row[j] * x[j]
     return total
+
+
+def _matmul(A: jax.Array | np.ndarray, B: jax.Array | np.ndarray) -> jax.Array | np.ndarray:
+    """``A @ B``, for matrices or batches of them with the batch last ([m, n, B] @ [n, k, B]);
+    NumPy for NumPy matrices, so that a concrete plant's products stay concrete."""
+    if A.ndim == 2:
+        return A @ B
+    return jnp.einsum("ijb,jkb->ikb", A, B)
 
 
 def _matvec(M: jax.Array, x: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:

@@ -69,8 +69,9 @@ def test_gradient_at_the_ends_of_the_range_is_one_sided_and_whole(interpolation)
 def test_bad_arguments():
     with pytest.raises(ValueError, match="capacity must be an integer >= 1"):
         delay.delay_init(jnp.zeros(1), 0)
-    with pytest.raises(ValueError, match="y0 must have shape"):
-        delay.delay_init(jnp.zeros((2, 2)), 3)
+    for bad in (jnp.zeros(()), jnp.zeros((2, 2, 2))):  # (n,) is one line, (n, B) a batch of them
+        with pytest.raises(ValueError, match="y0 must have shape"):
+            delay.delay_init(bad, 3)
     with pytest.raises(ValueError, match=r"y must have shape \(2,\)"):
         delay.delay_push(delay.delay_init(jnp.zeros(2), 3), jnp.zeros(()))
     with pytest.raises(ValueError, match="interpolation must be one of"):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxflex as jf
-from jaxflex.controllers import DFSParams, OpenLoopParams, PDParams, combine, dfs, fuzzy, fuzzy_params, open_loop, pd
+from jaxflex.controllers import Controller, DFSParams, OpenLoopParams, PDParams, by_name, combine, dfs, fuzzy, fuzzy_params, open_loop, pd
 from jaxflex.scenarios import Scenario, initial_condition, paper_scenario
 from tests.helpers import tree_allclose
 
@@ -105,6 +105,128 @@ def test_closed_over_and_traced_plants_give_the_same_loop(plant2):
         assert str(jax.make_jaxpr(closed)(sc)).count(" mul ") < str(jax.make_jaxpr(traced)(plant2, sc)).count(" mul ")
     hub_inf = sc._replace(x0=sc.x0.at[0].set(jnp.inf))  # the component no other one depends on
     assert bool(closed(hub_inf).diverged) and bool(traced(plant2, hub_inf).diverged)
+
+
+BATCH_CONTROLLERS = [
+    ("open loop", open_loop(), OpenLoopParams()),
+    ("DFS nearest", dfs(), DFSParams(55.0, 0.005)),
+    ("DFS linear", dfs(interpolation="linear"), DFSParams(55.0, 0.0047)),
+    ("DFS cubic", dfs(interpolation="cubic"), DFSParams(55.0, 0.0047)),
+    ("DFS Pade", dfs(approximation="pade", pade_order=3), DFSParams(55.0, 0.005)),
+    ("PD", pd(), PDParams(20.0, 0.5)),
+    ("fuzzy", fuzzy(), fuzzy_params()),  # its defuzzifiers share the batching (vmap of the surface)
+    ("DFS+fuzzy", combine(dfs(), fuzzy()), (DFSParams(55.0, 0.005), fuzzy_params())),
+]
+
+
+def _batch_of_scenarios(plant, batch, steps, seed=0):
+    """B scenarios around the paper's, each with its own initial state, tip force and noise."""
+    rng = np.random.default_rng(seed)
+    base = np.asarray(paper_scenario(plant).x0)
+    x0 = base + 1e-3 * rng.standard_normal((batch, base.shape[0])) * (np.arange(base.shape[0]) > 0)
+    force = 0.2 * rng.standard_normal((batch, steps, 1))
+    noise = rng.standard_normal((batch, steps, 2)) * np.array([1e-5, 1e-3])
+    return Scenario(*(jnp.asarray(a) for a in (x0, force, noise)))
+
+
+@pytest.mark.parametrize("name, controller, params", BATCH_CONTROLLERS, ids=[c[0] for c in BATCH_CONTROLLERS])
+def test_a_batch_in_one_rollout_equals_vmap_over_single_scenarios(plant2, name, controller, params):
+    """The batch as one rollout (the batch last in the loop; what Monte Carlo, the tuner and
+    the benchmark run) against ``vmap`` over single rollouts, for every built-in controller:
+    per-scenario inputs and a batch of plants, and inputs and a plant shared by the batch."""
+    del name
+    scs = _batch_of_scenarios(plant2, 5, 150)
+    scale = jnp.array([1.0, 0.9, 1.1, 0.95, 1.05])
+    plants = jax.vmap(lambda s: plant2._replace(Bd=plant2.Bd * s))(scale)  # five arms
+    freqs = jnp.array([[3.0, 20.0]]) * scale[:, None]
+
+    def both(plant, sc, plant_axis, freqs, freq_axis, shared_inputs):
+        one = lambda p, s, f: jf.rollout(p, controller, params, s, output=output, **({"mode_freqs_hz": f} if output == "metrics" else {}))  # noqa: E731
+        in_axes = (plant_axis, Scenario(0, None, None) if shared_inputs else 0, freq_axis)
+        return jax.jit(jax.vmap(one, in_axes=in_axes))(plant, sc, freqs), jax.jit(one)(plant, sc, freqs)
+
+    output = "metrics"  # Monte Carlo's and the tuner's case
+    mapped, batched = both(plants, scs, 0, freqs, 0, False)
+    tree_allclose(batched, mapped, rtol=1e-12, atol=1e-15)
+    output = "trajectory"
+    mapped, batched = both(plant2, scs._replace(force=scs.force[0], noise=scs.noise[0]), None, freqs[0], None, True)
+    tree_allclose(batched, mapped, rtol=1e-12, atol=1e-15)
+
+
+def test_a_controller_written_for_one_scenario_runs_a_batch_through_vmap(plant2):
+    """A user's controller (``batched`` False) is mapped over the batch by the rollout, and
+    gives what ``vmap`` over single rollouts gives, values and gradients."""
+
+    class Gain(NamedTuple):
+        k: Any
+
+    def step(params, state, y):  # written for one scenario: a shape check and a full sum
+        assert y.shape == (2,)
+        return state + 1.0, -params.k * jnp.sum(y * jnp.array([1.0, 0.05])).reshape(1) + 0.0 * state
+
+    mine = Controller(lambda params, y0: jnp.zeros(()), step, lambda params: None)
+    scs = _batch_of_scenarios(plant2, 4, 120)
+
+    def loss(k, batched):
+        run = lambda s: jf.rollout(plant2, mine, Gain(k), s, output="metrics").tip_ise  # noqa: E731
+        return jnp.mean(run(scs) if batched else jax.vmap(run)(scs))
+
+    for batched in (False, True):
+        assert np.isfinite(float(loss(30.0, batched)))
+    value, grad = jax.value_and_grad(loss)(30.0, True)
+    value_ref, grad_ref = jax.value_and_grad(loss)(30.0, False)
+    np.testing.assert_allclose(float(value), float(value_ref), rtol=1e-12)
+    np.testing.assert_allclose(float(grad), float(grad_ref), rtol=1e-10)
+
+
+def test_the_gradient_of_a_batch_equals_the_gradient_through_vmap(plant2):
+    """The tuner's loss (a batch mean) differentiated through the batched rollout and through
+    ``vmap`` over single rollouts: the same gradient for DFS+fuzzy's 20 parameters."""
+    controller, params = by_name("dfs+fuzzy", dt=1e-3, delay="linear", params={"tau_s": 0.0047})
+    scs = _batch_of_scenarios(plant2, 4, 150)
+
+    def loss(params, batched):
+        run = lambda s: jf.rollout(plant2, controller, params, s, output="metrics").tip_ise  # noqa: E731
+        return jnp.mean(run(scs) if batched else jax.vmap(run)(scs))
+
+    grads = [jax.jit(jax.grad(loss), static_argnums=1)(params, batched) for batched in (True, False)]
+    tree_allclose(grads[0], grads[1], rtol=1e-10, atol=1e-14)
+    assert all(float(jnp.max(jnp.abs(g))) > 0 for g in jax.tree.leaves(grads[0]))
+
+
+def test_a_batched_delay_line_is_one_row_per_slot(plant2):
+    """The reason for running the batch in the loop: the DFS ring buffer is carried as
+    [slots, 1, B] (each sample's write and read one contiguous row), not [B, slots, 1] as
+    ``vmap`` lays it out."""
+    scs = _batch_of_scenarios(plant2, 3, 20)
+    params = DFSParams(55.0, 0.005)
+    shapes = lambda jaxpr: {tuple(v.aval.shape) for eqn in jaxpr.eqns if eqn.primitive.name == "scan" for v in eqn.invars}  # noqa: E731
+    batched = jax.make_jaxpr(lambda s: jf.rollout(plant2, dfs(capacity=8), params, s, output="metrics"))(scs).jaxpr
+    mapped = jax.make_jaxpr(jax.vmap(lambda s: jf.rollout(plant2, dfs(capacity=8), params, s, output="metrics")))(scs).jaxpr
+    assert (9, 1, 3) in shapes(batched) and (3, 9, 1) not in shapes(batched)
+    assert (3, 9, 1) in shapes(mapped)
+
+
+def test_bad_batches_are_refused_by_name(plant2):
+    scs = _batch_of_scenarios(plant2, 3, 20)
+    plants = jax.tree.map(lambda a: jnp.stack([a] * 2), plant2)
+    params = DFSParams(55.0, 0.005)
+    with pytest.raises(ValueError, match=r"a batch of plants .* needs a batch of as many scenarios"):
+        jf.rollout(plants, dfs(), params, scs)
+    with pytest.raises(ValueError, match=r"a batch of plants .* needs a batch of as many scenarios"):
+        jf.rollout(plants, dfs(), params, jax.tree.map(lambda a: a[0], scs))
+    with pytest.raises(ValueError, match=r"scenario.force must have shape \(T, 1\)"):
+        jf.rollout(plant2, dfs(), params, scs._replace(force=scs.force[:2]))
+    with pytest.raises(ValueError, match=r"scenario.noise must have shape"):
+        jf.rollout(plant2, dfs(), params, scs._replace(noise=scs.noise[:, :10]))
+    with pytest.raises(ValueError, match="scenario.x0 must have shape"):
+        jf.rollout(plant2, dfs(), params, scs._replace(x0=scs.x0[None]))
+    with pytest.raises(ValueError, match=r"plant.dt must have shape \(2,\)"):
+        jf.rollout(plants._replace(dt=plant2.dt), dfs(), params, jax.tree.map(lambda a: a[:2], scs))
+    with pytest.raises(ValueError, match=r"mode_freqs_hz must be a 1-D array .* or 3 of them"):
+        jf.rollout(plant2, dfs(), params, scs, output="metrics", mode_freqs_hz=jnp.ones((2, 2)))
+    with pytest.raises(ValueError, match="controller.batched must be True or False"):
+        jf.rollout(plant2, dfs()._replace(batched=1), params, scs)
 
 
 def _tip_ise(plant, params, steps=400):

@@ -199,12 +199,11 @@ class Problem:
         params = self.tc.to_physical(raw)
         config = self.config
 
-        def one(params: Any, scenario: Scenario) -> objectives.Terms:
-            plant = self.nominal if scenario.plant is None else scenario_plant(self.beam, config.n_modes, self.dt, config.method, scenario)
-            freqs = scenario_modes_hz(self.beam, config.n_modes, scenario) if config.objective.vibration > 0 else None
-            return objectives.terms_from_metrics(rollout(plant, self.tc.controller, params, scenario, output="metrics", mode_freqs_hz=freqs))
+        def run(params: Any, batch: Scenario) -> objectives.Terms:
+            plant = self.nominal if batch.plant is None else jax.vmap(lambda s: scenario_plant(self.beam, config.n_modes, self.dt, config.method, s))(batch)
+            freqs = jax.vmap(lambda s: scenario_modes_hz(self.beam, config.n_modes, s))(batch) if config.objective.vibration > 0 else None
+            return jax.vmap(objectives.terms_from_metrics)(rollout(plant, self.tc.controller, params, batch, output="metrics", mode_freqs_hz=freqs))
 
-        run = jax.vmap(one, in_axes=(None, 0))
         if self.mesh is None:
             return run(params, batch)
         # shard_map rather than jit's automatic partitioning: the parameters' cotangent is then

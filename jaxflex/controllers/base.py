@@ -11,6 +11,13 @@ parameters before tracing:
   Called only with concrete (non-traced) parameters.
 * ``dt``: the sample time (s) the controller was built for, or ``None`` when its step does
   not depend on it. ``rollout`` refuses a plant sampled at another ``dt``.
+* ``batched``: whether ``init`` and ``step`` also run a batch of scenarios at once, given
+  measurements ``[n_y, B]`` with the batch as a trailing axis, and returning states and
+  torques ``[n_u, B]`` with it trailing as well (``False`` by default). ``rollout`` calls
+  such a controller once per step for a whole batch, and maps any other over the batch
+  with ``vmap``. The built-in controllers are batched: a ring buffer laid out ``[slots, B]``
+  makes each sample's write and read one contiguous row, where ``vmap`` would lay it out
+  ``[B, slots]`` (see ``jaxflex.rollout``).
 
 The measurement of the single-link arm is ``y = [theta (rad), theta_dot (rad/s)]`` and
 ``n_u = 1``.
@@ -34,6 +41,7 @@ class Controller(NamedTuple):
     step: Callable[[Any, Any, jax.Array], tuple[Any, jax.Array]]
     check: Callable[[Any], None]
     dt: float | None = None
+    batched: bool = False
 
 
 def same_dt(reference: float, dt: ArrayLike) -> Any:
@@ -54,6 +62,8 @@ def check_controller(name: str, controller: Any) -> Controller:
     for field in ("init", "step", "check"):
         if not callable(getattr(controller, field)):
             raise ValueError(f"{name}.{field} must be callable (see jaxflex.controllers.base); got {getattr(controller, field)!r}")
+    if not isinstance(controller.batched, bool):
+        raise ValueError(f"{name}.batched must be True or False (see jaxflex.controllers.base); got {controller.batched!r}")
     return controller
 
 
@@ -98,9 +108,9 @@ def open_loop() -> Controller:
 
     def step(params: OpenLoopParams, state: tuple[()], y: jax.Array) -> tuple[tuple[()], jax.Array]:
         del params
-        return state, jnp.zeros((1,), y.dtype)
+        return state, jnp.zeros((1,) + jnp.shape(y)[1:], y.dtype)
 
-    return Controller(init, step, lambda params: None)
+    return Controller(init, step, lambda params: None, batched=True)
 
 
 def combine(first: Controller, second: Controller) -> Controller:
@@ -131,4 +141,4 @@ def combine(first: Controller, second: Controller) -> Controller:
         first.check(params[0])
         second.check(params[1])
 
-    return Controller(init, step, check, first.dt if first.dt is not None else second.dt)
+    return Controller(init, step, check, first.dt if first.dt is not None else second.dt, first.batched and second.batched)

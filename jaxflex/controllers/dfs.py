@@ -58,7 +58,8 @@ class PadeDelayState(NamedTuple):
     """State of the DFS controller with ``approximation="pade"``.
 
     Attributes:
-      xi: [N] Pade filter state (rad); ``C xi + D theta`` is the delayed angle.
+      xi: [N] Pade filter state (rad), [N, B] for a batch; ``C xi + D theta`` is the
+        delayed angle.
       filt: the filter sampled at ``dt`` for this tau (``Ad`` [N, N], ``Bd`` [N, 1],
         ``C`` [1, N], ``D`` [1, 1]). Computed once in ``init`` (one ``expm``) and carried
         unchanged, because step-wise recomputation would cost an ``expm`` per sample.
@@ -148,4 +149,4 @@ def dfs(
                 f"({steps:g} samples). Use interpolation='linear' or 'cubic' for fractional delays."
             )
 
-    return Controller(init, step, check, dt)
+    return Controller(init, step, check, dt, batched=True)

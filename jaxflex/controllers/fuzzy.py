@@ -649,12 +649,15 @@ def fuzzy(
         return ()
 
     def step(params: FuzzyParams, state: tuple[()], y: jax.Array) -> tuple[tuple[()], jax.Array]:
-        if jnp.shape(y) != (2,):
-            raise ValueError(f"y must have shape (2,) (theta, theta_dot); got {jnp.shape(y)}")
+        if jnp.ndim(y) not in (1, 2) or jnp.shape(y)[0] != 2:
+            raise ValueError(f"y must have shape (2,) (theta, theta_dot), or (2, B) for a batch; got {jnp.shape(y)}")
         e = params.k1 * y[0]
         e_dot = params.k2 * y[1]
-        u = params.k3 * surface(params, e, e_dot)
-        return state, jnp.reshape(u, (1,))
+        # The surface is elementwise: vmap over a batch maps each of its operations onto the
+        # batch array, with no change to the arithmetic.
+        each = surface if jnp.ndim(e) == 0 else jax.vmap(surface, in_axes=(None, 0, 0))
+        u = params.k3 * each(params, e, e_dot)
+        return state, u[None]
 
     def check(params: FuzzyParams) -> None:
         check_params_type(params, FuzzyParams)
@@ -663,4 +666,4 @@ def fuzzy(
         check_finite_scalar("k3", params.k3)
         _check_centres(params, n_sets)
 
-    return Controller(init, step, check)
+    return Controller(init, step, check, batched=True)

@@ -32,4 +32,4 @@ def pd() -> Controller:
         check_finite_scalar("kp", params.kp)
         check_finite_scalar("kd", params.kd)
 
-    return Controller(init, step, check)
+    return Controller(init, step, check, batched=True)
