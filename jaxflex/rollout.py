@@ -241,9 +241,11 @@ def rollout(
         Ad, Bd, Ed, C, Cz = (np.asarray(m) for m in maps) if is_concrete(maps) else maps
     dt_plant = last(plant.dt) if jnp.ndim(plant.dt) else plant.dt
     init, step = controller.init, controller.step
-    if batch and not controller.batched:  # a controller written for one scenario
-        init = jax.vmap(init, in_axes=(None, -1), out_axes=-1)
-        step = jax.vmap(step, in_axes=(None, -1, -1), out_axes=-1)
+    if batch and not controller.batched:  # a controller written for one scenario: its state
+        # batch first, as vmap over single rollouts lays it out (a ring buffer with the batch
+        # last would be transposed by vmap at every read and write), y and u batch last
+        init = jax.vmap(init, in_axes=(None, -1), out_axes=0)
+        step = jax.vmap(step, in_axes=(None, 0, -1), out_axes=(0, -1))
 
     # The measurement of the next sample from the current one: y[k+1] = C x[k+1] + noise[k+1]
     # = (C Ad) x[k] + (C Bd) u[k] + (C Ed) force[k] + noise[k+1], with the products formed
