@@ -37,7 +37,7 @@ from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
-from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, pad_batch, sample_scenarios, scenario_modes_hz, scenario_plant
+from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, batch_plant, pad_batch, sample_scenarios, scenario_modes_hz
 
 CONTROLLERS = NAMES
 META = "montecarlo.json"
@@ -192,7 +192,7 @@ class _Runner:
         self.key = jax.random.key(config.seed)
 
         def evaluate(batch: Scenario) -> dict[str, jax.Array]:
-            plant = self.nominal if batch.plant is None else jax.vmap(lambda s: scenario_plant(self.beam, config.n_modes, spec.dt, config.method, s))(batch)
+            plant = batch_plant(self.beam, config.n_modes, spec.dt, config.method, batch, self.nominal)
             freqs = jax.vmap(lambda s: scenario_modes_hz(self.beam, config.n_modes, s))(batch)
             closed = rollout(plant, self.controller, self.params, batch, output="metrics", mode_freqs_hz=freqs)
             opened = rollout(plant, open_loop(), OpenLoopParams(), batch, output="metrics", mode_freqs_hz=freqs)
@@ -392,12 +392,11 @@ def tip_bands(runner: _Runner, percentiles: Sequence[float]) -> tuple[np.ndarray
     batch = jax.tree.map(lambda a: a[:count], runner.sample(0))
     spec = config.scenarios
 
-    def one(scenario: Scenario) -> tuple[jax.Array, jax.Array]:
-        plant = runner.nominal if scenario.plant is None else scenario_plant(runner.beam, config.n_modes, spec.dt, config.method, scenario)
-        traj = rollout(plant, runner.controller, runner.params, scenario)
-        return traj.z[:, 1], diverged(traj.x)
+    def run(batch: Scenario) -> tuple[jax.Array, jax.Array]:
+        traj = rollout(batch_plant(runner.beam, config.n_modes, spec.dt, config.method, batch, runner.nominal), runner.controller, runner.params, batch)
+        return traj.z[..., 1], jax.vmap(diverged)(traj.x)
 
-    tips, bad = jax.jit(jax.vmap(one))(batch)
+    tips, bad = jax.jit(run)(batch)
     tips = np.asarray(tips)[~np.asarray(bad)]  # [kept, T]
     t = np.arange(tips.shape[1]) * spec.dt
     bands = np.percentile(tips, list(percentiles), axis=0) if tips.shape[0] else np.full((len(percentiles), t.size), np.nan)

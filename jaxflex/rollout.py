@@ -239,7 +239,6 @@ def rollout(
         Ad, Bd, Ed, C, Cz = (last(m) for m in maps)
     else:  # closed over by jit (concrete): NumPy matrices, so that _dot sees their zeros
         Ad, Bd, Ed, C, Cz = (np.asarray(m) for m in maps) if is_concrete(maps) else maps
-    dt_plant = last(plant.dt) if jnp.ndim(plant.dt) else plant.dt
     init, step = controller.init, controller.step
     if batch and not controller.batched:  # a controller written for one scenario: its state
         # batch first, as vmap over single rollouts lays it out (a ring buffer with the batch
@@ -263,7 +262,7 @@ def rollout(
     # NaN from the start and reports itself diverged.
     x0 = tuple(scenario.x0[..., i] for i in range(n_x))
     if not is_concrete(plant.dt) and controller.dt is not None:
-        x0 = tuple(jnp.where(same_dt(controller.dt, dt_plant), x_i, jnp.nan) for x_i in x0)
+        x0 = tuple(jnp.where(same_dt(controller.dt, plant.dt), x_i, jnp.nan) for x_i in x0)
     # The inputs time-major: [T, 1] and [T, 2] shared by the batch, or [T, 1, B] and [T, 2, B].
     force = last(scenario.force) if scenario.force.ndim == 3 else scenario.force
     noise = last(scenario.noise) if scenario.noise.ndim == 3 else scenario.noise
@@ -289,7 +288,7 @@ def rollout(
 
     dtype = scenario.x0.dtype
     zero = jnp.zeros(batch, dtype)
-    dt = jnp.broadcast_to(jnp.asarray(dt_plant).astype(dtype), batch)  # a shared constant is free to broadcast
+    dt = jnp.broadcast_to(jnp.asarray(plant.dt).astype(dtype), batch)  # a shared constant is free to broadcast
     # [n_f, *batch]: the frequencies shared by the batch or one row per scenario
     freqs = jnp.zeros((0,), dtype) if mode_freqs_hz is None else jnp.asarray(mode_freqs_hz, dtype)
     omega = 2 * jnp.pi * (last(freqs) if freqs.ndim == 2 else jnp.broadcast_to(freqs.reshape((-1,) + (1,) * len(batch)), freqs.shape + batch))

@@ -60,8 +60,8 @@ class PlantPerturbation(NamedTuple):
 
 
 def check_scenario(scenario: Any) -> Scenario:
-    """Refuse, by name, what is not one :class:`Scenario`."""
-    return checks.instance("scenario", scenario, Scenario, "build one with paper_scenario(...), initial_condition(...) or sample_scenarios(...), one member of a batch at a time")
+    """Refuse, by name, what is not a :class:`Scenario` (one, or a batch of them)."""
+    return checks.instance("scenario", scenario, Scenario, "build one with paper_scenario(...), initial_condition(...) or, for a batch, sample_scenarios(...)")
 
 
 def perturbed_params(params: beam.BeamParams, perturbation: PlantPerturbation | None) -> beam.BeamParams:
@@ -79,6 +79,15 @@ def perturbed_params(params: beam.BeamParams, perturbation: PlantPerturbation | 
 def scenario_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str, scenario: Scenario) -> DiscretePlant:
     """The sampled plant a scenario runs on (vmap this together with the rollout)."""
     return discretize(make_plant(perturbed_params(params, check_scenario(scenario).plant), n_modes), dt, method)
+
+
+def batch_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str, batch: Scenario, nominal: DiscretePlant) -> DiscretePlant:
+    """The plant a batch of scenarios runs on in one ``rollout``: ``nominal`` (built from
+    ``params``, shared by the batch) when the batch has no plant uncertainty, else one
+    ``scenario_plant`` per scenario (every field with a leading batch axis)."""
+    if check_scenario(batch).plant is None:
+        return nominal
+    return jax.vmap(lambda scenario: scenario_plant(params, n_modes, dt, method, scenario))(batch)
 
 
 def scenario_modes_hz(params: beam.BeamParams, n_modes: int, scenario: Scenario) -> jax.Array:
