@@ -7,6 +7,10 @@ temporary folder made for this session (removed at exit, so nothing carries over
 run to the next), compiles each distinct program once per session: a repeated program is
 loaded back, the same executable. The subprocesses the tests start inherit it through the
 environment. A cache folder set in the environment beforehand is used as it is.
+
+pytest-xdist's workers (pyproject.toml runs two by default) inherit the controller's folder
+and each takes a subfolder of its own: JAX writes a cache entry in place, without a lock, so
+two processes must not share one folder.
 """
 
 import atexit
@@ -20,6 +24,8 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache_dir
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+if "PYTEST_XDIST_WORKER" in os.environ:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = os.path.join(os.environ["JAX_COMPILATION_CACHE_DIR"], os.environ["PYTEST_XDIST_WORKER"])
 
 import jax  # noqa: E402  (after the environment above, which jax reads at import)
 import matplotlib  # noqa: E402
