@@ -24,6 +24,10 @@ Sections (``--section``, default all):
   horizon), each checked against jaxflex before it is timed, with jaxflex timed beside them.
 * ``ab``: the rollout and fuzzy modules of git revision ``--ab-rev`` (before the layout
   changes) against the working tree's, in one process, timed in interleaved rounds.
+* ``cost``: the open loop and DFS+fuzzy (singleton and centroid) forward at ``--cost-batches``,
+  timed in interleaved rounds, and a straight line through each one's time per step against
+  the scenarios per device: a fixed cost per step and a cost per scenario-step, whose
+  inverse bounds the rate at any batch.
 
 Examples::
 
@@ -42,12 +46,13 @@ import sys
 import time
 from typing import Any, Callable
 
-SECTIONS = ("matmul", "flops", "memory", "baselines", "sweep", "matrix", "capacity", "ab")
+SECTIONS = ("matmul", "flops", "memory", "baselines", "sweep", "matrix", "capacity", "ab", "cost")
 CAPACITIES = (64, 16, 8)  # DFS buffer sizes of the capacity section (the delay is 5 samples)
 AB_REV = "620479b"  # the last commit before the layout changes of rollout.py and fuzzy.py
 SWEEP_BATCHES = (1, 16, 256, 1024, 4096, 16384, 65536, 131072)
 MAX_SWEEP_STEPS = 1.4e8  # default cap on batch * horizon of one call in the sweep (CPU time)
 VARIANT_BATCHES = (1024, 4096, 16384)  # sweep batches of the singleton, smooth and RK4 rows
+COST_BATCHES = (2048, 4096, 8192, 16384, 32768)  # batches of the cost section
 RTOL_NUMPY = 1e-10  # float64, same arithmetic in another order (observed ~3e-15)
 RTOL_CONTROL = 1e-10  # python-control: float64, the same maps (observed ~1e-14)
 # scikit-fuzzy integrates the centroid on a sampled universe (2001 points, step 1e-3): each
@@ -494,6 +499,48 @@ def section_capacity(emit: Callable, runs: int, min_time: float, horizon: int, b
             _measure_or_skip(emit, config(controller=controller, capacity=capacity, batch=batch))
 
 
+def fit_step_cost(per_device: Any, seconds_per_step: Any) -> tuple[float, float]:
+    """Least-squares line ``seconds_per_step = fixed + per_scenario * per_device``; returns
+    ``(fixed, per_scenario)`` in seconds. Needs at least two distinct batches."""
+    import numpy as np
+
+    per_device, seconds_per_step = np.asarray(per_device, float), np.asarray(seconds_per_step, float)
+    if per_device.shape != seconds_per_step.shape or len(np.unique(per_device)) < 2:
+        raise ValueError(f"fit_step_cost needs two or more distinct batches with one time each; got {per_device.tolist()} and {seconds_per_step.tolist()}")
+    per_scenario, fixed = np.polyfit(per_device, seconds_per_step, 1)
+    return float(fixed), float(per_scenario)
+
+
+def section_cost(emit: Callable, runs: int, min_time: float, horizon: int, batches: tuple[int, ...]) -> None:
+    """Interleaved rounds over the batches of one controller at a time (the host's drift
+    touches every batch alike), then the line through the medians."""
+    import jax
+    import numpy as np
+
+    from jaxflex.bench import BenchConfig, make_benchmark
+
+    n_dev = len(jax.devices())
+    for controller, defuzz in (("open_loop", "centroid"), ("dfs+fuzzy", "singleton"), ("dfs+fuzzy", "centroid")):
+        fns = {}
+        for batch in batches:
+            fn, args = make_benchmark(BenchConfig(controller=controller, defuzz=defuzz, batch=batch, horizon=horizon))
+            jax.block_until_ready(fn(*args))
+            fns[batch] = (fn, args)
+        walls: dict[int, list[float]] = {batch: [] for batch in batches}
+        for _ in range(runs):
+            for batch, (fn, args) in fns.items():
+                calls = max(1, int(min_time / runs / np.median(walls[batch]))) if walls[batch] else 1  # the window spread over the rounds
+                start = time.perf_counter()
+                for _ in range(calls):
+                    jax.block_until_ready(fn(*args))
+                walls[batch].append((time.perf_counter() - start) / calls)
+        per_step = [float(np.median(walls[batch])) / horizon for batch in batches]
+        for batch, seconds in zip(batches, per_step):
+            emit({"kind": "cost", "controller": controller, "defuzz": defuzz if "fuzzy" in controller else None, "integrator": "zoh", "dtype": "float32", "batch": batch, "horizon": horizon, "per_device": batch / n_dev, "seconds_per_step": seconds, "steps_per_second": batch / seconds})
+        fixed, per_scenario = fit_step_cost([batch / n_dev for batch in batches], per_step)
+        emit({"kind": "cost_fit", "controller": controller, "defuzz": defuzz if "fuzzy" in controller else None, "n_devices": n_dev, "batches": list(batches), "fixed_us_per_step": fixed * 1e6, "ns_per_scenario_step": per_scenario * 1e9, "limit_steps_per_second": n_dev / per_scenario})
+
+
 # -- ab: before / after the layout changes ---------------------------------------------------
 
 
@@ -646,6 +693,13 @@ def render_tables(paths: list[str]) -> str:
                     label = lambda v: f"{r['rev']}" if v == "old" else "new"  # noqa: E731
                     out.append(f"| {label(r['rollout'])} | {label(r['fuzzy'])} | {r['mode']} | {r['batch']} | {_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {r['compile_s']:.2f} |")
             out.append("")
+        if "cost_fit" in kinds:
+            out.append("| controller | defuzz | steps/s at each batch (median) | fixed cost per step, per device | per scenario-step, per device | rate at any batch at most |\n|---|---|---|---:|---:|---:|")
+            for r in rows:
+                if r["kind"] == "cost_fit":
+                    rates = ", ".join(f"{c['batch']}: {_fmt(c['steps_per_second'])}" for c in rows if c["kind"] == "cost" and (c["controller"], c["defuzz"]) == (r["controller"], r["defuzz"]))
+                    out.append(f"| {r['controller']} | {r['defuzz'] or '-'} | {rates} | {r['fixed_us_per_step']:.2f} µs | {r['ns_per_scenario_step']:.2f} ns | {_fmt(r['limit_steps_per_second'])} |")
+            out.append("")
         rollouts = [r for r in rows if r["kind"] == "rollout"]
         if rollouts:
             out.append("| controller | defuzz | DFS buffer | integrator | dtype | batch | horizon | mode | steps/s (median) | steps/s (best) | p10-p90 (calls) | compile s | CPU util |\n|---|---|---:|---|---|---:|---:|---|---:|---:|---:|---:|---:|")
@@ -691,6 +745,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--short-horizon", type=int, default=200, help="horizon of the per-step python-control and scikit-fuzzy baselines")
     p.add_argument("--host-devices", type=int, default=1, help="JAX CPU devices (one per core): the batch is sharded across them")
     p.add_argument("--no-intra-op-threads", action="store_true", help="XLA_FLAGS=--xla_cpu_multi_thread_eigen=false")
+    p.add_argument("--cost-batches", type=int, nargs="+", default=list(COST_BATCHES), help="batch sizes of the cost section (two or more)")
     p.add_argument("--ab-rev", default=AB_REV, help=f"git revision of the 'before' modules of the ab section (default {AB_REV})")
     p.add_argument("--quick", action="store_true", help="small sizes: horizon 200, runs 3, sweep to 16384")
     return p
@@ -701,11 +756,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.tables:
         print(render_tables(args.tables))
         return 0
+    if len(set(args.cost_batches)) < 2 or min(args.cost_batches) < 1:
+        _parser().error(f"--cost-batches needs two or more distinct batch sizes >= 1 (a line through them); got {args.cost_batches}")
     _setup_jax(args)
     if args.quick:
         args.horizon, args.runs, args.short_horizon, args.min_time = 200, 3, 50, 0.5
         args.batches = [b for b in args.batches if b <= 16384]
         args.variant_batches = [b for b in args.variant_batches if b <= 16384]
+        args.cost_batches = [b for b in args.cost_batches if b <= 16384] or args.cost_batches
         args.grad_batches = [1024]
     sections = SECTIONS if "all" in args.section else tuple(args.section)
     meta = _meta()
@@ -730,6 +788,8 @@ def main(argv: list[str] | None = None) -> int:
             section_capacity(emit, args.runs, args.min_time, args.horizon, args.batch)
         elif section == "ab":
             section_ab(emit, args.runs, args.horizon, args.batch, 1024, args.ab_rev)
+        elif section == "cost":
+            section_cost(emit, args.runs, args.min_time, args.horizon, tuple(args.cost_batches))
     meta["loadavg_1min_end"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     meta["peak_device_bytes"] = _peak_device_bytes()
     if args.out:

@@ -263,3 +263,42 @@ def test_cpu_model_names_the_family_and_model(tmp_path):
     assert _cpu_model(str(info)) == "AMD EPYC (family 23, model 1)"
     info.write_text("processor\t: 0\nmodel name\t: Some CPU\n")
     assert _cpu_model(str(info)) == "Some CPU"
+
+
+def test_step_cost_fit_recovers_a_line_and_refuses_one_batch(capsys):
+    from benchmarks.bench_rollout import _parser, fit_step_cost, main
+
+    per_device = np.array([1024.0, 2048.0, 4096.0, 8192.0])
+    fixed, per_scenario = fit_step_cost(per_device, 5e-6 + 9e-9 * per_device)
+    np.testing.assert_allclose([fixed, per_scenario], [5e-6, 9e-9], rtol=1e-9)
+    for bad in (([1024.0, 1024.0], [1e-5, 2e-5]), ([1024.0, 2048.0], [1e-5])):
+        with pytest.raises(ValueError, match="two or more distinct batches"):
+            fit_step_cost(*bad)
+    assert _parser().parse_args(["--cost-batches", "8", "16"]).cost_batches == [8, 16]
+    for bad in (["4096"], ["4096", "4096"], ["0", "16"]):
+        with pytest.raises(SystemExit):
+            main(["--section", "cost", "--cost-batches", *bad])
+        assert "--cost-batches needs two or more distinct batch sizes >= 1" in capsys.readouterr().err
+
+
+def test_cost_section_fits_its_own_rows_and_tabulates_them(tmp_path):
+    from benchmarks.bench_rollout import Emitter, fit_step_cost, render_tables, section_cost
+
+    emit = Emitter({"affinity_cores": 2})
+    section_cost(emit, runs=2, min_time=0.0, horizon=20, batches=(8, 32))
+    cost = [r for r in emit.rows if r["kind"] == "cost"]
+    fits = [r for r in emit.rows if r["kind"] == "cost_fit"]
+    assert [(r["controller"], r["defuzz"]) for r in fits] == [("open_loop", None), ("dfs+fuzzy", "singleton"), ("dfs+fuzzy", "centroid")]
+    for fit in fits:
+        rows = [r for r in cost if (r["controller"], r["defuzz"]) == (fit["controller"], fit["defuzz"])]
+        assert [r["batch"] for r in rows] == [8, 32]
+        for r in rows:
+            np.testing.assert_allclose(r["steps_per_second"], r["batch"] / r["seconds_per_step"])
+        fixed, per_scenario = fit_step_cost([r["per_device"] for r in rows], [r["seconds_per_step"] for r in rows])
+        np.testing.assert_allclose([fit["fixed_us_per_step"], fit["ns_per_scenario_step"]], [fixed * 1e6, per_scenario * 1e9])
+        np.testing.assert_allclose(fit["limit_steps_per_second"], fit["n_devices"] / per_scenario)
+    meta = dict.fromkeys(("cpu_model", "cpu_count", "affinity_cores", "n_devices", "device_kind", "xla_flags", "jax_version", "numpy_version", "time_utc", "command"), "-")
+    meta["loadavg_1min"] = 0.5
+    (tmp_path / "cost.json").write_text(json.dumps({"meta": meta, "rows": emit.rows}))
+    table = render_tables([str(tmp_path / "cost.json")])
+    assert table.count("| dfs+fuzzy | singleton | 8: ") == 1 and "| open_loop | - | 8: " in table
