@@ -499,6 +499,25 @@ def section_capacity(emit: Callable, runs: int, min_time: float, horizon: int, b
             _measure_or_skip(emit, config(controller=controller, capacity=capacity, batch=batch))
 
 
+def interleaved_walls(calls: dict[Any, tuple[Callable, tuple]], rounds: int, min_time: float = 0.0) -> dict[Any, list[float]]:
+    """Seconds per call of each compiled ``fn(*args)`` in ``calls``, timed in interleaved
+    rounds (the host's load then touches every entry alike): one time per round, the mean
+    of as many calls as fill ``min_time / rounds`` seconds (one call when 0, and in the
+    first round)."""
+    import jax
+    import numpy as np
+
+    walls: dict[Any, list[float]] = {key: [] for key in calls}
+    for _ in range(rounds):
+        for key, (fn, args) in calls.items():
+            repeat = max(1, int(min_time / rounds / np.median(walls[key]))) if walls[key] else 1
+            start = time.perf_counter()
+            for _ in range(repeat):
+                jax.block_until_ready(fn(*args))
+            walls[key].append((time.perf_counter() - start) / repeat)
+    return walls
+
+
 def fit_step_cost(per_device: Any, seconds_per_step: Any) -> tuple[float, float]:
     """Least-squares line ``seconds_per_step = fixed + per_scenario * per_device``; returns
     ``(fixed, per_scenario)`` in seconds. Needs at least two distinct batches."""
@@ -526,19 +545,13 @@ def section_cost(emit: Callable, runs: int, min_time: float, horizon: int, batch
             fn, args = make_benchmark(BenchConfig(controller=controller, defuzz=defuzz, batch=batch, horizon=horizon))
             jax.block_until_ready(fn(*args))
             fns[batch] = (fn, args)
-        walls: dict[int, list[float]] = {batch: [] for batch in batches}
-        for _ in range(runs):
-            for batch, (fn, args) in fns.items():
-                calls = max(1, int(min_time / runs / np.median(walls[batch]))) if walls[batch] else 1  # the window spread over the rounds
-                start = time.perf_counter()
-                for _ in range(calls):
-                    jax.block_until_ready(fn(*args))
-                walls[batch].append((time.perf_counter() - start) / calls)
+        walls = interleaved_walls(fns, runs, min_time)
         per_step = [float(np.median(walls[batch])) / horizon for batch in batches]
+        label = defuzz if "fuzzy" in controller else None
         for batch, seconds in zip(batches, per_step):
-            emit({"kind": "cost", "controller": controller, "defuzz": defuzz if "fuzzy" in controller else None, "integrator": "zoh", "dtype": "float32", "batch": batch, "horizon": horizon, "per_device": batch / n_dev, "seconds_per_step": seconds, "steps_per_second": batch / seconds})
+            emit({"kind": "cost", "controller": controller, "defuzz": label, "integrator": "zoh", "dtype": "float32", "batch": batch, "horizon": horizon, "per_device": batch / n_dev, "seconds_per_step": seconds, "steps_per_second": batch / seconds})
         fixed, per_scenario = fit_step_cost([batch / n_dev for batch in batches], per_step)
-        emit({"kind": "cost_fit", "controller": controller, "defuzz": defuzz if "fuzzy" in controller else None, "n_devices": n_dev, "batches": list(batches), "fixed_us_per_step": fixed * 1e6, "ns_per_scenario_step": per_scenario * 1e9, "limit_steps_per_second": n_dev / per_scenario})
+        emit({"kind": "cost_fit", "controller": controller, "defuzz": label, "n_devices": n_dev, "batches": list(batches), "fixed_us_per_step": fixed * 1e6, "ns_per_scenario_step": per_scenario * 1e9, "limit_steps_per_second": n_dev / per_scenario})
 
 
 # -- ab: before / after the layout changes ---------------------------------------------------
@@ -595,12 +608,7 @@ def section_ab(emit: Callable, runs: int, horizon: int, batch: int, grad_batch: 
         start = time.perf_counter()
         jax.block_until_ready(fn(*args))
         first[key] = time.perf_counter() - start
-    walls = {key: [] for key in variants}
-    for _ in range(runs):  # interleaved rounds: the machine's load affects all variants alike
-        for key, (fn, args, _) in variants.items():
-            start = time.perf_counter()
-            jax.block_until_ready(fn(*args))
-            walls[key].append(time.perf_counter() - start)
+    walls = interleaved_walls({key: (fn, args) for key, (fn, args, _) in variants.items()}, runs)
     for (r_name, f_name, mode), (_, _, b) in variants.items():
         w = walls[(r_name, f_name, mode)]
         emit({"kind": "ab", "rollout": r_name, "fuzzy": f_name, "rev": rev, "controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": "float32", "batch": b, "horizon": horizon, "mode": mode, "median_s": float(np.median(w)), "min_s": min(w), "compile_s": first[(r_name, f_name, mode)] - float(np.median(w)), "steps_per_second": b * horizon / float(np.median(w)), "steps_per_second_best": b * horizon / min(w)})

@@ -37,7 +37,7 @@ from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
-from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, batch_plant, pad_batch, sample_scenarios, scenario_modes_hz
+from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plant, check_plants, pad_batch, sample_scenarios
 
 CONTROLLERS = NAMES
 META = "montecarlo.json"
@@ -193,7 +193,7 @@ class _Runner:
 
         def evaluate(batch: Scenario) -> dict[str, jax.Array]:
             plant = batch_plant(self.beam, config.n_modes, spec.dt, config.method, batch, self.nominal)
-            freqs = jax.vmap(lambda s: scenario_modes_hz(self.beam, config.n_modes, s))(batch)
+            freqs = batch_modes_hz(self.beam, config.n_modes, batch)
             closed = rollout(plant, self.controller, self.params, batch, output="metrics", mode_freqs_hz=freqs)
             opened = rollout(plant, open_loop(), OpenLoopParams(), batch, output="metrics", mode_freqs_hz=freqs)
             return jax.vmap(_metrics_row)(closed, opened.modal_energy)

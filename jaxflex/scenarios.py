@@ -97,6 +97,15 @@ def scenario_modes_hz(params: beam.BeamParams, n_modes: int, scenario: Scenario)
     return beam.natural_frequencies_hz(perturbed_params(params, check_scenario(scenario).plant), n_modes)
 
 
+def batch_modes_hz(params: beam.BeamParams, n_modes: int, batch: Scenario) -> jax.Array:
+    """``scenario_modes_hz`` of a batch, as ``rollout`` takes them: the nominal arm's
+    [n_modes], shared by the batch, when it has no plant uncertainty, else one row per
+    scenario, [B, n_modes]."""
+    if check_scenario(batch).plant is None:
+        return beam.natural_frequencies_hz(params, n_modes)
+    return jax.vmap(lambda scenario: scenario_modes_hz(params, n_modes, scenario))(batch)
+
+
 def check_plants(spec: "ScenarioSpec", params: beam.BeamParams, n_modes: int, method: str) -> None:
     """Build the nominal plant and the plants at each corner of ``spec``'s uncertainty box,
     refusing the first that ``make_plant`` refuses (not finite in the run's dtype) or, for

@@ -281,6 +281,26 @@ def test_step_cost_fit_recovers_a_line_and_refuses_one_batch(capsys):
         assert "--cost-batches needs two or more distinct batch sizes >= 1" in capsys.readouterr().err
 
 
+def test_interleaved_walls_time_each_call_and_fill_the_window():
+    from benchmarks.bench_rollout import interleaved_walls
+
+    def sleeper(seconds):
+        def fn(x):
+            time.sleep(seconds)
+            return x
+
+        return fn, (jnp.zeros(()),)
+
+    calls = {"short": sleeper(0.01), "long": sleeper(0.03)}
+    counted = {"n": 0}
+    counting = lambda x: counted.__setitem__("n", counted["n"] + 1) or x  # noqa: E731
+    walls = interleaved_walls({**calls, "count": (counting, (jnp.zeros(()),))}, rounds=3)
+    assert counted["n"] == 3 and all(len(w) == 3 for w in walls.values())  # one call per round without a window
+    assert min(walls["short"]) >= 0.01 and min(walls["long"]) >= 0.03 and np.median(walls["long"]) > np.median(walls["short"])
+    windowed = interleaved_walls({"short": calls["short"]}, rounds=2, min_time=0.2)["short"]
+    assert len(windowed) == 2 and 0.01 <= windowed[1] < 0.05  # the second round: the mean of about 10 calls
+
+
 def test_cost_section_fits_its_own_rows_and_tabulates_them(tmp_path):
     from benchmarks.bench_rollout import Emitter, fit_step_cost, render_tables, section_cost
 

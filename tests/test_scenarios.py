@@ -202,7 +202,7 @@ def test_scenario_plant_and_modes_are_those_of_the_drawn_arm_and_refuse_a_non_sc
     np.testing.assert_allclose(scenario_plant(arm, 2, 1e-3, "zoh", one).Ad, discretize(make_plant(drawn, 2), 1e-3, "zoh").Ad, rtol=1e-6, atol=1e-9)
     assert not np.allclose(scenario_modes_hz(arm, 2, one), natural_frequencies_hz(arm, 2), rtol=1e-3)
     # a batch in one rollout: the nominal plant itself without uncertainty, else each member's own
-    from jaxflex.scenarios import batch_plant
+    from jaxflex.scenarios import batch_modes_hz, batch_plant
 
     nominal = discretize(make_plant(arm, 2), 1e-3, "zoh")
     assert batch_plant(arm, 2, 1e-3, "zoh", batch._replace(plant=None), nominal) is nominal
@@ -210,6 +210,8 @@ def test_scenario_plant_and_modes_are_those_of_the_drawn_arm_and_refuse_a_non_sc
     for i in range(2):
         member = jax.tree.map(lambda a, i=i: a[i], batch)
         np.testing.assert_allclose(plants.Ad[i], discretize(make_plant(perturbed_params(arm, member.plant), 2), 1e-3, "zoh").Ad, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(batch_modes_hz(arm, 2, batch)[i], natural_frequencies_hz(perturbed_params(arm, member.plant), 2), rtol=1e-6)
+    np.testing.assert_allclose(batch_modes_hz(arm, 2, batch._replace(plant=None)), natural_frequencies_hz(arm, 2), rtol=1e-12)
     for bad in (None, {"plant": None}, batch.plant):
         with pytest.raises(ValueError, match=r"scenario must be a Scenario \(build one with paper_scenario"):
             scenario_modes_hz(arm, 2, bad)
@@ -217,6 +219,8 @@ def test_scenario_plant_and_modes_are_those_of_the_drawn_arm_and_refuse_a_non_sc
             scenario_plant(arm, 2, 1e-3, "zoh", bad)
         with pytest.raises(ValueError, match=r"scenario must be a Scenario \(build one with paper_scenario"):
             batch_plant(arm, 2, 1e-3, "zoh", bad, nominal)
+        with pytest.raises(ValueError, match=r"scenario must be a Scenario \(build one with paper_scenario"):
+            batch_modes_hz(arm, 2, bad)
 
 
 def test_pad_batch_repeats_the_last_scenario_and_refuses_what_is_not_a_batch():

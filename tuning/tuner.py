@@ -34,7 +34,7 @@ from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import rollout
-from jaxflex.scenarios import Scenario, ScenarioSpec, check_plants, batch_plant, pad_batch, sample_scenarios, scenario_modes_hz
+from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plant, check_plants, pad_batch, sample_scenarios
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
 from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_controller
@@ -201,7 +201,7 @@ class Problem:
 
         def run(params: Any, batch: Scenario) -> objectives.Terms:
             plant = batch_plant(self.beam, config.n_modes, self.dt, config.method, batch, self.nominal)
-            freqs = jax.vmap(lambda s: scenario_modes_hz(self.beam, config.n_modes, s))(batch) if config.objective.vibration > 0 else None
+            freqs = batch_modes_hz(self.beam, config.n_modes, batch) if config.objective.vibration > 0 else None
             return jax.vmap(objectives.terms_from_metrics)(rollout(plant, self.tc.controller, params, batch, output="metrics", mode_freqs_hz=freqs))
 
         if self.mesh is None:

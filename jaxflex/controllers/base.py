@@ -15,9 +15,10 @@ parameters before tracing:
   measurements ``[n_y, B]`` with the batch as a trailing axis, and returning states and
   torques ``[n_u, B]`` with it trailing as well (``False`` by default). ``rollout`` calls
   such a controller once per step for a whole batch, and maps any other over the batch
-  with ``vmap``, its state batch-first as under ``vmap`` over single rollouts. The built-in controllers are batched: a ring buffer laid out ``[slots, B]``
-  makes each sample's write and read one contiguous row, where ``vmap`` would lay it out
-  ``[B, slots]`` (see ``jaxflex.rollout``).
+  with ``vmap``, its state batch-first as under ``vmap`` over single rollouts. The built-in
+  controllers are batched: a ring buffer laid out ``[slots, n, B]`` makes each sample's
+  write and read one contiguous row, where ``vmap`` would lay it out ``[B, slots, n]`` (see
+  ``jaxflex.rollout``).
 
 The measurement of the single-link arm is ``y = [theta (rad), theta_dot (rad/s)]`` and
 ``n_u = 1``.
