@@ -736,12 +736,22 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1; got {text}")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--section", nargs="+", choices=SECTIONS + ("all",), default=["all"], help="what to run (default all)")
     p.add_argument("--out", default=None, help="also write the rows as one JSON document here")
     p.add_argument("--tables", nargs="+", default=None, metavar="FILE", help="print Markdown tables of result documents and exit")
-    p.add_argument("--runs", type=int, default=5, help="timed calls per configuration after warm-up (default 5)")
+    p.add_argument("--runs", type=_count, default=5, help="timed calls per configuration after warm-up (default 5)")
     p.add_argument("--min-time", type=_seconds, default=2.0, help="timed seconds per configuration at least: more calls after --runs until they add up to this (default 2; small batches take milliseconds per call)")
     p.add_argument("--horizon", type=int, default=1000, help="samples per scenario (default 1000 = 1 s)")
     p.add_argument("--batch", type=int, default=4096, help="batch of the matrix, memory and baseline sections (default 4096)")

@@ -275,6 +275,10 @@ def test_step_cost_fit_recovers_a_line_and_refuses_one_batch(capsys):
         with pytest.raises(ValueError, match="two or more distinct batches"):
             fit_step_cost(*bad)
     assert _parser().parse_args(["--cost-batches", "8", "16"]).cost_batches == [8, 16]
+    for bad in ("0", "-2", "1.5", "x"):  # the rounds of the cost and ab sections, the calls of the others
+        with pytest.raises(SystemExit):
+            _parser().parse_args(["--runs", bad])
+        assert f"--runs: must be an integer >= 1; got {bad}" in capsys.readouterr().err
     for bad in (["4096"], ["4096", "4096"], ["0", "16"]):
         with pytest.raises(SystemExit):
             main(["--section", "cost", "--cost-batches", *bad])
