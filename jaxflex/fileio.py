@@ -1,5 +1,10 @@
 """Atomic file writes: a reader never sees a half-written result, and a failed write leaves
-the previous file untouched."""
+the previous file untouched.
+
+Temporary files and staging folders are named ``.tmp-*`` and locked (``flock``) by the process
+writing them while it lives. A process killed outright (SIGKILL) cannot remove its own, so
+every write first sweeps those of its folder that no living process holds.
+"""
 
 from __future__ import annotations
 
@@ -10,8 +15,66 @@ import math
 import os
 import shutil
 import tempfile
+import time
 import tomllib
 from typing import Any, Callable, Iterable, Iterator, Mapping
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: no locks, so the leftovers of killed runs are kept
+    fcntl = None
+
+TEMP_PREFIX = ".tmp-"
+# A temporary entry is locked right after it is made; one younger than this may still be in
+# that gap, so it is never swept.
+_SWEEP_MIN_AGE_S = 10.0
+
+
+def _lock(fd: int) -> bool:
+    """Take an exclusive lock on ``fd`` without waiting: False if another process holds it."""
+    if fcntl is None:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # held elsewhere (BlockingIOError), or a file system without locks
+        return False
+    return True
+
+
+def sweep_stale(folder: str | os.PathLike) -> list[str]:
+    """Remove the ``.tmp-*`` files and folders in ``folder`` that no living process holds (those
+    of runs that were killed), older than a few seconds; returns their names. Entries a
+    process holds, or that cannot be opened, are left alone; without ``fcntl`` (not POSIX)
+    nothing is removed.
+    """
+    folder = os.fspath(folder)
+    removed = []
+    if fcntl is None:
+        return removed
+    try:
+        entries = [entry for entry in os.scandir(folder) if entry.name.startswith(TEMP_PREFIX)]
+    except OSError:
+        return removed
+    for entry in entries:
+        try:
+            if entry.is_symlink() or time.time() - entry.stat(follow_symlinks=False).st_mtime < _SWEEP_MIN_AGE_S:
+                continue
+            fd = os.open(entry.path, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            if not _lock(fd):
+                continue
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path)
+            else:
+                os.remove(entry.path)
+            removed.append(entry.name)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+    return removed
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
@@ -24,15 +87,17 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=folder)
-    os.close(fd)
+    sweep_stale(folder)
+    fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=os.path.splitext(path)[1], dir=folder)
     try:
+        _lock(fd)  # held until the file is renamed or removed: no sweep takes it meanwhile
         write(tmp)
         os.chmod(tmp, _mode_for(path))
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+        os.close(fd)
 
 
 @contextlib.contextmanager
@@ -46,8 +111,11 @@ def replace_outputs(folder: str | os.PathLike, owned: Iterable[str], last: str |
     """
     folder = os.fspath(folder)
     os.makedirs(folder, exist_ok=True)
-    stage = tempfile.mkdtemp(prefix=".tmp-", dir=folder)
+    sweep_stale(folder)
+    stage = tempfile.mkdtemp(prefix=TEMP_PREFIX, dir=folder)
+    fd = os.open(stage, os.O_RDONLY)
     try:
+        _lock(fd)
         yield stage
         written = sorted(os.listdir(stage), key=lambda name: name == last)
         for name in written:
@@ -58,6 +126,7 @@ def replace_outputs(folder: str | os.PathLike, owned: Iterable[str], last: str |
                 os.remove(os.path.join(folder, name))
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+        os.close(fd)
 
 
 def _mode_for(path: str) -> int:

@@ -275,6 +275,54 @@ def test_atomic_writes_follow_the_umask(tmp_path):
     assert stat.S_IMODE((tmp_path / "new.md").stat().st_mode) == 0o640
 
 
+def _age(path, seconds):
+    """Set back a file's or folder's modification time by ``seconds``."""
+    past = os.stat(path).st_mtime - seconds
+    os.utime(path, (past, past))
+
+
+@pytest.mark.skipif(fileio.fcntl is None, reason="the sweep needs POSIX locks")
+def test_writes_sweep_the_temporaries_of_killed_runs_only(tmp_path):
+    """A run killed by SIGKILL inside replace_outputs and atomic_write leaves its .tmp-*
+    folder and file; the next write into the folder removes them. A temporary that a living
+    process holds, one made in the last seconds, and every other file are kept."""
+    script = (
+        "import os, signal, sys\n"
+        "from jaxflex import fileio\n"
+        "folder = sys.argv[1]\n"
+        "def killed(tmp):\n"
+        "    open(tmp, 'w').write('half')\n"
+        "    with fileio.replace_outputs(folder, ['a.png']) as stage:\n"
+        "        open(os.path.join(stage, 'a.png'), 'w').write('half')\n"
+        "        os.kill(os.getpid(), signal.SIGKILL)\n"
+        "fileio.atomic_write(os.path.join(folder, 'results.json'), killed)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", script, str(tmp_path)], cwd=ROOT, capture_output=True, text=True)
+    assert run.returncode == -9, run.stderr
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert len(left) == 2 and all(name.startswith(".tmp-") for name in left)  # the folder and the file
+    for name in left:
+        _age(tmp_path / name, 60)
+    (tmp_path / "keep.txt").write_text("mine")
+    held = tmp_path / ".tmp-held"
+    held.write_text("a living writer's")
+    _age(held, 60)
+    young = tmp_path / ".tmp-young"
+    young.mkdir()
+    fd = os.open(held, os.O_RDONLY)
+    try:
+        assert fileio._lock(fd)
+        fileio.write_text(tmp_path / "new.md", "x")
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".tmp-held", ".tmp-young", "keep.txt", "new.md"]
+    finally:
+        os.close(fd)
+    _age(young, 60)
+    with fileio.replace_outputs(tmp_path, []) as stage:  # the held file is free now; the stage is not swept by the write inside
+        fileio.write_text(tmp_path / "other.md", "y")
+        assert os.path.isdir(stage)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.txt", "new.md", "other.md"]
+
+
 def test_readme_quick_start_matches_ci():
     readme = (ROOT / "README.md").read_text()
     quick_start = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
