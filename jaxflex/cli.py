@@ -7,6 +7,7 @@ import os
 import re
 import signal
 import sys
+import tempfile
 import threading
 import time
 from typing import Any, Sequence
@@ -26,8 +27,23 @@ def _positive_int(text: str) -> int:
     return value
 
 
+# More CPU devices than cores only add overhead, and with hundreds XLA's collectives (the
+# tuner's gradient sum) stall and abort the process.
+CPU_DEVICES_PER_CORE = 8
+
+
+def _cpu_devices(text: str) -> int:
+    from jaxflex.bench import usable_cores
+
+    value = _positive_int(text)
+    limit = CPU_DEVICES_PER_CORE * usable_cores()
+    if value > limit:
+        raise argparse.ArgumentTypeError(f"expected an integer from 1 to {limit} ({CPU_DEVICES_PER_CORE} per core this process may use); got {value}")
+    return value
+
+
 _CPU_DEVICES_HELP = (
-    "JAX CPU devices the batch is sharded over, one per core (default: the cores this process may use; "
+    f"JAX CPU devices the batch is sharded over, at most {CPU_DEVICES_PER_CORE} per core (default: one per core this process may use; "
     "1: a single device whose kernels XLA splits across cores). Faster runs on a multi-core CPU "
     "(benchmarks/README.md); no effect on an accelerator"
 )
@@ -80,7 +96,7 @@ def _parser() -> argparse.ArgumentParser:
     tun.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
     tun.add_argument("--no-progress", action="store_true", help="no progress bar")
     tun.add_argument("--x64", action="store_true", help="tune in float64 (default float32)")
-    tun.add_argument("--cpu-devices", type=_positive_int, default=None, help=_CPU_DEVICES_HELP)
+    tun.add_argument("--cpu-devices", type=_cpu_devices, default=None, help=_CPU_DEVICES_HELP)
 
     stab = sub.add_parser("stability", help="DFS stability: critical delays, rightmost root, sampled-loop spectral radius, (k, tau) chart")
     stab.add_argument("--k", type=float, default=55.0, help="DFS gain (N*m/rad; default 55, the paper's)")
@@ -108,7 +124,7 @@ def _parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="quick benchmark of vectorised closed-loop rollouts (under two minutes); prints a table")
     bench.add_argument("--json", default=None, help="write one JSON object per configuration (JSON Lines) to this file")
     bench.add_argument("--full", action="store_true", help="add the batch sweep and float64 (several minutes)")
-    bench.add_argument("--cpu-devices", type=_positive_int, default=None, help=_CPU_DEVICES_HELP)
+    bench.add_argument("--cpu-devices", type=_cpu_devices, default=None, help=_CPU_DEVICES_HELP)
 
     mc = sub.add_parser("montecarlo", help="batched Monte Carlo over sampled scenarios: statistics, histograms, percentile bands")
     mc.add_argument("--controller", choices=NAMES, default=None, help="controller (default dfs+fuzzy)")
@@ -121,7 +137,7 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument("--resume", action="store_true", help="continue a run in OUT, skipping the chunks already written")
     mc.add_argument("--no-progress", action="store_true", help="no progress bar")
     mc.add_argument("--x64", action="store_true", help="simulate in float64 (default float32)")
-    mc.add_argument("--cpu-devices", type=_positive_int, default=None, help=_CPU_DEVICES_HELP)
+    mc.add_argument("--cpu-devices", type=_cpu_devices, default=None, help=_CPU_DEVICES_HELP)
     mc.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() first (multi-host; see the README)")
     mc.add_argument("--coordinator", default=None, help="with --distributed: coordinator host:port (default: detected, e.g. SLURM or Open MPI)")
     mc.add_argument("--num-processes", type=_positive_int, default=None, help="with --distributed: number of processes")
@@ -239,6 +255,14 @@ def _check_out(path: str) -> None:
         os.makedirs(path, exist_ok=True)
     except OSError as err:
         raise ValueError(f"--out {path!r}: cannot make the folder ({err.strerror or err})") from None
+    # A folder that exists but takes no files (read-only) would fail only when the results are
+    # written, after the work: a file is made and removed now instead.
+    try:
+        fd, probe = tempfile.mkstemp(prefix=fileio.TEMP_PREFIX, dir=path)
+        os.close(fd)
+        os.remove(probe)
+    except OSError as err:
+        raise ValueError(f"--out {path!r}: cannot write in the folder ({err.strerror or err})") from None
 
 
 def _run(args: argparse.Namespace) -> int:

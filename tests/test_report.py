@@ -377,6 +377,37 @@ def test_cli_refuses_bad_outputs_before_any_work(tmp_path, capsys):
     assert [p.name for p in tmp_path.iterdir()] == ["afile"]  # nothing was made or written
 
 
+def test_cli_refuses_a_folder_it_cannot_write_in_before_any_work(tmp_path, capsys, monkeypatch):
+    """An --out that exists but takes no files (read-only; faked, since root may write
+    anywhere) is refused by name at once, by every command that writes one; it was found
+    only when the results were written, after the work, with a bare errno message."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+
+    def refused(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(cli.tempfile, "mkstemp", refused)
+    for command in (["reproduce"], ["tune"], ["montecarlo"], ["stability"], ["calibrate", "--freqs", "15.5", "46.2"]):
+        assert cli.main([*command, "--out", str(ro)]) == 2, command
+        err = capsys.readouterr().err
+        assert f"--out {str(ro)!r}: cannot write in the folder (Permission denied)" in err and "Traceback" not in err, (command, err)
+    assert os.listdir(ro) == []
+
+
+def test_cli_cpu_devices_has_a_ceiling_per_core(monkeypatch, capsys):
+    """Hundreds of CPU devices on a few cores stalled XLA's collectives for minutes and then
+    aborted the process; --cpu-devices takes at most 8 per usable core."""
+    import jaxflex.bench
+
+    monkeypatch.setattr(jaxflex.bench, "usable_cores", lambda: 2)
+    assert cli._cpu_devices("16") == 16
+    for command in ("tune", "montecarlo", "bench"):
+        with pytest.raises(SystemExit):
+            cli.main([command, "--cpu-devices", "17"])
+        assert "--cpu-devices: expected an integer from 1 to 16 (8 per core this process may use); got 17" in capsys.readouterr().err
+
+
 def test_cli_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatch):
     import tuning.run
 
