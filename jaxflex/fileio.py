@@ -41,20 +41,17 @@ def _lock(fd: int) -> bool:
     return True
 
 
-def sweep_stale(folder: str | os.PathLike) -> list[str]:
+def sweep_stale(folder: str | os.PathLike) -> None:
     """Remove the ``.tmp-*`` files and folders in ``folder`` that no living process holds (those
-    of runs that were killed), older than a few seconds; returns their names. Entries a
-    process holds, or that cannot be opened, are left alone; without ``fcntl`` (not POSIX)
-    nothing is removed.
+    of runs that were killed), older than a few seconds. Entries a process holds, or that
+    cannot be opened, are left alone; without ``fcntl`` (not POSIX) nothing is removed.
     """
-    folder = os.fspath(folder)
-    removed = []
     if fcntl is None:
-        return removed
+        return
     try:
-        entries = [entry for entry in os.scandir(folder) if entry.name.startswith(TEMP_PREFIX)]
+        entries = [entry for entry in os.scandir(os.fspath(folder)) if entry.name.startswith(TEMP_PREFIX)]
     except OSError:
-        return removed
+        return
     for entry in entries:
         try:
             if entry.is_symlink() or time.time() - entry.stat(follow_symlinks=False).st_mtime < _SWEEP_MIN_AGE_S:
@@ -69,12 +66,10 @@ def sweep_stale(folder: str | os.PathLike) -> list[str]:
                 shutil.rmtree(entry.path)
             else:
                 os.remove(entry.path)
-            removed.append(entry.name)
         except OSError:
             continue
         finally:
             os.close(fd)
-    return removed
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
@@ -113,9 +108,11 @@ def replace_outputs(folder: str | os.PathLike, owned: Iterable[str], last: str |
     os.makedirs(folder, exist_ok=True)
     sweep_stale(folder)
     stage = tempfile.mkdtemp(prefix=TEMP_PREFIX, dir=folder)
-    fd = os.open(stage, os.O_RDONLY)
+    fd = None
     try:
-        _lock(fd)
+        if fcntl is not None:  # a folder cannot be opened on Windows
+            fd = os.open(stage, os.O_RDONLY)
+            _lock(fd)
         yield stage
         written = sorted(os.listdir(stage), key=lambda name: name == last)
         for name in written:
@@ -126,7 +123,8 @@ def replace_outputs(folder: str | os.PathLike, owned: Iterable[str], last: str |
                 os.remove(os.path.join(folder, name))
     finally:
         shutil.rmtree(stage, ignore_errors=True)
-        os.close(fd)
+        if fd is not None:
+            os.close(fd)
 
 
 def _mode_for(path: str) -> int:
