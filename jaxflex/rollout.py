@@ -93,7 +93,7 @@ class RunMetrics(NamedTuple):
         peak, measured from 0 (the equilibrium of the elastic deflection); +inf if the last
         sample is outside the band. Computed exactly in one pass: when the running peak grows
         at sample k, sample k itself is outside the band, so earlier exceedances never matter.
-      peak_abs_state: max |x| over all states and samples (NaN if any sample was non-finite).
+      peak_abs_state: max |x| over all states and samples (inf or NaN if a sample was: NaN wins).
       diverged: peak_abs_state non-finite or above ``DIVERGENCE_THRESHOLD``.
       modal_energy: [n_f] energy of the tip deflection at each frequency of
         ``mode_freqs_hz``: ``|sum_k w_k tip_k exp(-2 pi i f t_k) dt|^2`` with ``w`` the periodic
@@ -296,12 +296,11 @@ def rollout(
     def metrics_body(carry, inputs):
         x, state, u, k, peak, last_out, ise_t, iae_t, ise_h, effort, peak_x, dft_re, dft_im = carry
         hub, tip = _dot(Cz[0], x), _dot(Cz[1], x)
-        peak = jnp.maximum(peak, jnp.abs(tip))
+        peak = _peak_abs(peak, (tip,))
         last_out = jnp.where(jnp.abs(tip) > settling_band * peak, k, last_out)
         t_k = k.astype(dtype) * dt
         windowed = (0.5 - 0.5 * jnp.cos(2 * jnp.pi * k.astype(dtype) / steps)) * tip * dt
-        for x_i in x:
-            peak_x = jnp.maximum(peak_x, jnp.abs(x_i))
+        peak_x = _peak_abs(peak_x, x)
         x, state, u_next, _ = advance(x, state, u, *inputs)
         carry = (
             x,
@@ -328,6 +327,38 @@ def rollout(
     diverged = ~jnp.isfinite(peak_x) | (peak_x > DIVERGENCE_THRESHOLD)
     energy = dft_re**2 + dft_im**2
     return RunMetrics(peak, ise_t, iae_t, ise_h, effort, x_end[0], settling, peak_x, diverged, jnp.moveaxis(energy, 0, -1) if batch else energy)
+
+
+def _peak_abs_exact(peak: jax.Array, values: tuple[jax.Array, ...]) -> jax.Array:
+    """``max(peak, |v_0|, |v_1|, ...)`` elementwise with ``jnp.maximum`` (NaN if any is NaN)."""
+    for v in values:
+        peak = jnp.maximum(peak, jnp.abs(v))
+    return peak
+
+
+@jax.custom_jvp
+def _peak_abs(peak: jax.Array, values: tuple[jax.Array, ...]) -> jax.Array:
+    """A running peak of magnitudes: :func:`_peak_abs_exact`, on the floats' bits.
+
+    ``jnp.maximum`` lowers to IEEE 754-2019 ``maximum`` (a NaN wins), which x86 has no
+    instruction for: LLVM expands each into a max, compares and blends, and the running
+    maxima are a metric kernel of every step. For floats with the sign bit clear (a
+    magnitude, and a ``peak`` >= 0 or NaN), the order of their bits read as signed integers
+    is the order of the values, +inf above every finite one and every NaN above +inf; so
+    clearing the sign bits and taking integer maxima (one ``and`` and one ``max`` each) gives
+    the same peak, NaN if any operand is NaN. The derivative is the exact chain's.
+    """
+    itype = {4: jnp.int32, 8: jnp.int64}[peak.dtype.itemsize]
+    magnitude = jnp.iinfo(itype).max  # every bit but the sign
+    bits = jax.lax.bitcast_convert_type(peak, itype)
+    for v in values:
+        bits = jnp.maximum(bits, jax.lax.bitcast_convert_type(v, itype) & magnitude)
+    return jax.lax.bitcast_convert_type(bits, peak.dtype)
+
+
+@_peak_abs.defjvp
+def _peak_abs_jvp(primals, tangents):
+    return jax.jvp(_peak_abs_exact, primals, tangents)
 
 
 def _dot(row: jax.Array | np.ndarray, x: tuple[jax.Array, ...]) -> jax.Array:

@@ -533,6 +533,44 @@ def test_running_metrics_report_divergence(plant2):
     assert jf.rollout(plant2, pd(), PDParams(1.0, 0.1), sc, output="metrics").diverged.item() is False
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_running_peaks_on_bits_equal_jnp_maximum(dtype):
+    """The running peaks (``peak_tip_m``, ``peak_abs_state``) take integer maxima of the
+    magnitudes' bits: NumPy's ``maximum`` of ``abs`` over signed zeros, subnormals, the largest
+    finite value, infinities and NaNs of either sign (NaN wins, and stays), exactly; and the
+    derivatives of a chain of ``jnp.maximum``, ties included. (XLA's CPU arithmetic flushes
+    subnormals to zero, so that chain's values differ from NumPy's there.)"""
+    from jaxflex.rollout import _peak_abs, _peak_abs_exact
+
+    info = jnp.finfo(dtype)
+    specials = np.array([0.0, -0.0, float(info.smallest_subnormal), -float(info.smallest_subnormal), float(info.tiny), 1.0, -1.0, 2.5, -3.0, float(info.max), -float(info.max), np.inf, -np.inf, np.nan, -np.nan], dtype)
+    rng = np.random.default_rng(0)
+    peaks = np.concatenate([np.abs(specials), rng.uniform(0, 4, 64).astype(dtype)])  # a running peak is >= 0 or NaN
+    values = tuple(jnp.asarray(np.concatenate([rng.permutation(specials), rng.normal(0, 2, 64).astype(dtype)])) for _ in range(3))
+    peaks = jnp.asarray(peaks)
+    for n in (1, 3):  # the tip's peak (one value), the state's (several)
+        fast = np.asarray(_peak_abs(peaks, values[:n]))
+        expected = np.maximum.reduce([np.asarray(peaks)] + [np.abs(np.asarray(v)) for v in values[:n]])
+        assert fast.dtype == expected.dtype == dtype
+        assert np.isnan(expected).sum() >= 2  # a NaN peak stays, a NaN value wins
+        np.testing.assert_array_equal(fast, expected)  # NaN where NumPy has NaN, and bit for bit elsewhere
+    # Derivatives where everything is finite, with exact ties between the peak and a value.
+    finite_peaks = jnp.asarray(rng.uniform(0, 4, 32).astype(dtype))
+    finite = tuple(jnp.asarray(rng.normal(0, 2, 32).astype(dtype)) for _ in range(3))
+    finite = (finite[0].at[:4].set(-finite_peaks[:4]),) + finite[1:]
+    tangents = (jnp.asarray(rng.normal(size=32).astype(dtype)), tuple(jnp.asarray(rng.normal(size=32).astype(dtype)) for _ in range(3)))
+    out_fast, tan_fast = jax.jvp(_peak_abs, (finite_peaks, finite), tangents)
+    out_exact, tan_exact = jax.jvp(_peak_abs_exact, (finite_peaks, finite), tangents)
+    np.testing.assert_array_equal(out_fast, out_exact)
+    np.testing.assert_array_equal(tan_fast, tan_exact)
+    for n in (1, 3):
+        grad_fast = jax.grad(lambda p: jnp.sum(_peak_abs(p, finite[:n])))(finite_peaks)
+        grad_exact = jax.grad(lambda p: jnp.sum(_peak_abs_exact(p, finite[:n])))(finite_peaks)
+        np.testing.assert_array_equal(grad_fast, grad_exact)
+    tied = jax.grad(lambda p: jnp.sum(_peak_abs(p, finite[:1])))(finite_peaks)
+    assert np.all(np.asarray(tied)[:4] == 0.5)  # the ties split half and half
+
+
 def test_unknown_output_is_rejected(plant2):
     with pytest.raises(ValueError, match="output must be one of"):
         jf.rollout(plant2, open_loop(), OpenLoopParams(), paper_scenario(plant2, horizon_s=0.01), output="all")
