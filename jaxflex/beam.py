@@ -363,33 +363,24 @@ def natural_frequencies_hz(params: BeamParams, n_modes: int = 2, hub: str = "fre
 def _exact_determinant(lam: float, mu: float, j: float, r: float) -> float:
     """Determinant of the boundary conditions of the hub-beam-payload frequency equation.
 
-    ``Y = c1 cosh + c2 cos + c3 sinh + c4 sin`` (argument lambda x / L) with Y(0) = 0,
-    EI Y''(0) = -I_H w^2 Y'(0), EI Y''(L) = J_p w^2 Y'(L), EI Y'''(L) = -m_p w^2 Y(L);
-    mu = I_H / (rho A L^3), j = J_p / (rho A L^3), r = m_p / (rho A L). Rows are scaled by
-    e^-lambda so the entries stay O(1). The hub row ``[1, -1, mu l^3, mu l^3]`` is not: at a
-    heavy hub (mu l^3 up to 1e13) elimination through it wiped out the tip rows. The
-    determinant is affine in that row, so it is the weighted sum of the determinants with
-    ``[1, -1, 0, 0]`` and ``[0, 0, 1, 1]``, each O(1), divided by ``1 + mu l^3 > 0`` (same zeros
-    and signs).
+    ``Y = c1 cos(l s) + c2 sin(l s) + c3 e^(-l s) + c4 e^(-l (1 - s))`` along the beam
+    (s = x / L, l = lambda), with Y(0) = 0, EI Y''(0) = -I_H w^2 Y'(0),
+    EI Y''(L) = J_p w^2 Y'(L), EI Y'''(L) = -m_p w^2 Y(L); mu = I_H / (rho A L^3),
+    j = J_p / (rho A L^3), r = m_p / (rho A L). Each derivative in s is divided by l. Every
+    basis function and derivative is then O(1) on [0, 1], and so are the rows at any lambda
+    (with cosh and sinh, scaled by e^-lambda, the rows cancelled to round-off from about the
+    twelfth mode on, and the roots found there were spurious). The hub row
+    ``D2 + mu l^3 D1`` is not O(1) at a heavy hub (mu l^3 up to 1e13, where elimination
+    through it wiped out the tip rows): the determinant is affine in that row, so it is the
+    weighted sum of the determinants with ``D2`` and ``D1``, each O(1), divided by
+    ``1 + mu l^3 > 0`` (same zeros and signs).
     """
-    sh, ch, s, c = math.sinh(lam), math.cosh(lam), math.sin(lam), math.cos(lam)
-    scale = math.exp(-lam)
+    s, c, e = math.sin(lam), math.cos(lam), math.exp(-lam)
     l3 = lam**3
-    tip_rows = [
-        [
-            scale * (ch - j * l3 * sh),
-            scale * (-c + j * l3 * s),
-            scale * (sh - j * l3 * ch),
-            scale * (-s - j * l3 * c),
-        ],
-        [
-            scale * (sh + r * lam * ch),
-            scale * (s + r * lam * c),
-            scale * (ch + r * lam * sh),
-            scale * (-c + r * lam * s),
-        ],
-    ]
-    free, clamped = (float(np.linalg.det(np.array([[1.0, 1.0, 0.0, 0.0], hub, *tip_rows]))) for hub in ([1.0, -1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.0]))
+    at_zero = [1.0, 0.0, 1.0, e]  # Y(0) = 0
+    tip_inertia = [-c + j * l3 * s, -s - j * l3 * c, e * (1.0 + j * l3), 1.0 - j * l3]  # D2 - j l^3 D1 at 1
+    tip_mass = [s + r * lam * c, -c + r * lam * s, e * (r * lam - 1.0), 1.0 + r * lam]  # D3 + r l D0 at 1
+    free, clamped = (float(np.linalg.det(np.array([at_zero, hub, tip_inertia, tip_mass]))) for hub in ([-1.0, 0.0, 1.0, e], [0.0, 1.0, -1.0, e]))
     weight = mu * l3
     return (free + weight * clamped) / (1.0 + weight)
 
@@ -402,7 +393,7 @@ def exact_natural_frequencies_hz(params: BeamParams, n_freqs: int = 2) -> np.nda
     bisection, in NumPy float64. Not differentiable: it is the reference that the
     assumed-mode frequencies converge to from above as n grows.
     """
-    n_freqs = checks.integer("n_freqs", n_freqs)
+    n_freqs = checks.integer("n_freqs", n_freqs, high=MAX_MODES)
     check_beam_params(params)
     p = {name: float(np.asarray(getattr(params, name))) for name in _POSITIVE_FIELDS + _NONNEGATIVE_FIELDS}
     rho_a = p["density_kg_m3"] * p["width_m"] * p["thickness_m"]

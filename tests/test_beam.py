@@ -77,10 +77,30 @@ def test_mass_and_stiffness_against_quadrature_with_payload():
 
 
 def test_library_exact_frequencies_match_hand_derived_equation():
-    params = BeamParams()
-    np.testing.assert_allclose(beam.exact_natural_frequencies_hz(params, 5), _exact_no_payload_hz(params, 5), rtol=RTOL_ROOT)
-    with pytest.raises(ValueError, match=r"n_freqs must be an integer >= 1; got 0"):
+    """To 30 modes, for the paper's hub, a heavy one (near clamped-free) and a light one (near
+    pinned-free): the rows of the boundary conditions in cosh and sinh cancelled to round-off
+    from about the twelfth mode, and the roots found there were spurious."""
+    for hub in (BeamParams().hub_inertia_kg_m2, 1e3, 1e-9):
+        params = BeamParams(hub_inertia_kg_m2=hub)
+        np.testing.assert_allclose(beam.exact_natural_frequencies_hz(params, 30), _exact_no_payload_hz(params, 30), rtol=RTOL_ROOT, err_msg=str(hub))
+    with pytest.raises(ValueError, match=r"n_freqs must be an integer in \[1, 100\]; got 0"):
         beam.exact_natural_frequencies_hz(params, 0)
+    with pytest.raises(ValueError, match=r"n_freqs must be an integer in \[1, 100\]; got 101"):
+        beam.exact_natural_frequencies_hz(params, 101)
+
+
+def test_exact_payload_frequencies_bound_many_assumed_modes_from_below():
+    """With a payload (no hand-derived equation), the first 16 exact frequencies bound the
+    20- and 40-mode models' from below, which approach them (Rayleigh-Ritz), and they are
+    spaced as a beam's high roots are: lambda = beta L gaps that grow towards pi."""
+    loaded = BeamParams(payload_mass_kg=0.1, payload_inertia_kg_m2=1e-4)
+    exact = beam.exact_natural_frequencies_hz(loaded, 16)
+    coarse, fine = (np.asarray(beam.natural_frequencies_hz(loaded, n))[:16] for n in (20, 40))
+    assert np.all(exact < fine) and np.all(fine < coarse)
+    rho_a = loaded.density_kg_m3 * loaded.width_m * loaded.thickness_m
+    e_i = loaded.youngs_modulus_pa * loaded.width_m * loaded.thickness_m**3 / 12
+    gaps = np.diff(np.sqrt(2 * math.pi * exact / math.sqrt(e_i / rho_a)) * loaded.length_m)
+    assert np.all(np.diff(gaps[4:]) > 0) and 0.995 * math.pi < gaps[-1] < math.pi
 
 
 def test_payload_frequencies_converge_from_above():
