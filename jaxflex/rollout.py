@@ -54,7 +54,7 @@ import numpy as np
 
 from jaxflex import checks
 from jaxflex.analysis.metrics import DIVERGENCE_THRESHOLD
-from jaxflex.controllers.base import Controller, check_controller, is_concrete, same_dt
+from jaxflex.controllers.base import Controller, check_controller, check_params, is_concrete, same_dt
 from jaxflex.plant import DiscretePlant, check_sampled
 from jaxflex.scenarios import Scenario, check_scenario
 
@@ -226,8 +226,7 @@ def rollout(
     # The sample times first: parameters checked against another dt give misleading messages.
     if controller.dt is not None and is_concrete(plant.dt) and not np.all(same_dt(controller.dt, np.asarray(plant.dt, np.float64))):
         raise ValueError(f"the controller was built for dt = {controller.dt:g} s but the plant is sampled at dt = {np.asarray(plant.dt).ravel()[0]:g} s: build both with one dt")
-    if is_concrete(params):
-        controller.check(params)
+    check_params(controller, params)  # the concrete leaves: a traced out-of-range value runs NaN
 
     n_x = plant.Ad.shape[-1]
     steps = scenario.force.shape[-2]

@@ -409,6 +409,39 @@ def test_bad_dfs_parameters_are_rejected(plant2, params, match):
         jf.rollout(plant2, dfs(), params, paper_scenario(plant2, horizon_s=0.01))
 
 
+def test_concrete_parameters_are_checked_beside_traced_ones(plant2):
+    """Under grad with respect to one gain, the other parameters are concrete and still
+    checked by name (they were skipped with any leaf traced: a fractional delay ran NaN, a
+    negative k2 gave a finite, wrong gradient). All-traced parameters run as before, and a
+    user's check that reads a traced value is skipped under tracing, not raised."""
+    sc = paper_scenario(plant2, horizon_s=0.02)
+
+    def ise(controller, params):
+        return jnp.sum(jf.rollout(plant2, controller, params, sc).z[:, 1] ** 2)
+
+    with pytest.raises(ValueError, match="tau_s must be a whole number of samples"):
+        jax.grad(lambda k: ise(dfs(), DFSParams(k, 0.0055)))(55.0)
+    with pytest.raises(ValueError, match=r"tau_s must be in \(0, 0.064\]"):
+        jax.grad(lambda k: ise(dfs(), DFSParams(k, 0.5)))(55.0)
+    with pytest.raises(ValueError, match="k2 must be finite and > 0"):
+        jax.grad(lambda k1: ise(fuzzy(), fuzzy_params(k1, -0.3, 1.0)))(1.02)
+    with pytest.raises(ValueError, match="angle_centres must have shape"):
+        jax.grad(lambda k3: ise(fuzzy(), fuzzy_params(1.02, 0.3, k3, centres=[1.0, 0.5, 0.0, -0.5, -1.0])))(1.0)
+    with pytest.raises(ValueError, match="k must be finite"):
+        jax.grad(lambda tau: ise(dfs(interpolation="linear"), DFSParams(float("nan"), tau)))(0.0055)
+    assert np.isfinite(float(jax.grad(lambda k: ise(dfs(), DFSParams(k, 0.005)))(55.0)))
+    assert np.isnan(float(jax.jit(lambda p: ise(dfs(), p))(DFSParams(55.0, 0.0055))))  # all traced: NaN, as documented
+
+    def strict_check(p):
+        if not float(p["kp"]) > 0:
+            raise ValueError("kp must be > 0")
+
+    mine = Controller(lambda p, y0: (), lambda p, s, y: (s, -(p["kp"] * y[:1] + p["kd"] * y[1:2])), strict_check)
+    with pytest.raises(ValueError, match="kp must be > 0"):
+        ise(mine, {"kp": -1.0, "kd": 0.1})
+    assert np.isfinite(float(jax.grad(lambda kp: ise(mine, {"kp": kp, "kd": 0.1}))(1.0)))  # its check reads the traced kp: skipped
+
+
 def test_fractional_delay_accepted_with_linear_interpolation(plant2):
     sc = paper_scenario(plant2, horizon_s=0.05)
     traj = jf.rollout(plant2, dfs(interpolation="linear"), DFSParams(55.0, 0.0055), sc)

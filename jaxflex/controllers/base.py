@@ -8,7 +8,10 @@ parameters before tracing:
 * ``step(params, state, y) -> (state, u)``: ``y`` is the measurement ``[n_y]`` at this
   sample; ``u`` is the torque ``[n_u]`` (N*m) held over the next sample.
 * ``check(params)``: raises ``ValueError`` naming the parameter and its accepted range.
-  Called only with concrete (non-traced) parameters.
+  ``rollout`` calls it with the parameters as it gets them: under ``jit``, ``grad`` or
+  ``vmap`` some or all leaves are tracers, and a check skips those (``is_concrete``,
+  ``check_scalar_param``) so that the concrete ones are still checked. A check that reads
+  a traced leaf anyway (``float`` of it) is skipped for that call.
 * ``dt``: the sample time (s) the controller was built for, or ``None`` when its step does
   not depend on it. ``rollout`` refuses a plant sampled at another ``dt``.
 * ``batched``: whether ``init`` and ``step`` also run a batch of scenarios at once, given
@@ -94,6 +97,25 @@ def check_finite_scalar(name: str, value: Any, *, positive: bool = False, nonneg
     if not (abs(v) < float("inf")):
         raise ValueError(f"{name} must be finite{unit}; got {v}")
     return v
+
+
+def check_scalar_param(name: str, value: Any, *, positive: bool = False) -> float | None:
+    """``check_finite_scalar`` of a controller parameter that may be traced (a leaf ``jit``,
+    ``grad`` or ``vmap`` traces): ``None`` for a tracer, whose value is not known yet."""
+    if isinstance(value, jax.core.Tracer):
+        return None
+    return check_finite_scalar(name, value, positive=positive)
+
+
+def check_params(controller: Controller, params: Any) -> None:
+    """``controller.check(params)``, with some leaves possibly traced: the built-in checks
+    skip tracers and check the rest; a check that cannot (it reads a tracer's value) is
+    skipped when any leaf is traced."""
+    try:
+        controller.check(params)
+    except jax.errors.JAXTypeError:
+        if is_concrete(params):
+            raise
 
 
 class OpenLoopParams(NamedTuple):

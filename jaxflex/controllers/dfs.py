@@ -41,7 +41,7 @@ import jax.numpy as jnp
 from jax.typing import ArrayLike
 
 from jaxflex import delay, pade
-from jaxflex.controllers.base import Controller, check_finite_scalar, check_params_type
+from jaxflex.controllers.base import Controller, check_finite_scalar, check_params_type, check_scalar_param
 
 APPROXIMATIONS = ("buffer", "pade")
 CAPACITY_REMEDY = "Pass a larger capacity to dfs() (the capacity key of a tune or montecarlo config)."
@@ -133,9 +133,9 @@ def dfs(
 
     def check(params: DFSParams) -> None:
         check_params_type(params, DFSParams)
-        check_finite_scalar("k", params.k)
-        tau = check_finite_scalar("tau_s", params.tau_s, positive=True)
-        if use_pade:
+        check_scalar_param("k", params.k)
+        tau = check_scalar_param("tau_s", params.tau_s, positive=True)
+        if use_pade or tau is None:
             return
         steps = tau / dt
         if steps > capacity * (1 + delay.WHOLE_SAMPLE_RTOL):

@@ -109,7 +109,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflex import checks
-from jaxflex.controllers.base import Controller, check_finite_scalar, check_params_type, is_concrete
+from jaxflex.controllers.base import Controller, check_params_type, check_scalar_param, is_concrete
 
 SET_NAMES = ("NM", "NS", "ZE", "PS", "PM")
 
@@ -180,7 +180,7 @@ def fuzzy_params(
             checks.real_array(name, value, scalar=True)
     if is_concrete(centres):
         checks.real_array("centres", centres)
-    dtype = float if dtype is None else dtype
+    dtype = float if dtype is None else checks.float_dtype("dtype", dtype)
     c = jnp.asarray(centres, dtype=dtype)
     return FuzzyParams(
         k1=jnp.asarray(k1, dtype=dtype),
@@ -661,9 +661,9 @@ def fuzzy(
 
     def check(params: FuzzyParams) -> None:
         check_params_type(params, FuzzyParams)
-        check_finite_scalar("k1", params.k1, positive=True)
-        check_finite_scalar("k2", params.k2, positive=True)
-        check_finite_scalar("k3", params.k3)
+        check_scalar_param("k1", params.k1, positive=True)
+        check_scalar_param("k2", params.k2, positive=True)
+        check_scalar_param("k3", params.k3)
         _check_centres(params, n_sets)
 
     return Controller(init, step, check, batched=True)

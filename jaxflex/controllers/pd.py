@@ -7,7 +7,7 @@ from typing import NamedTuple
 import jax
 from jax.typing import ArrayLike
 
-from jaxflex.controllers.base import Controller, check_finite_scalar, check_params_type
+from jaxflex.controllers.base import Controller, check_params_type, check_scalar_param
 
 
 class PDParams(NamedTuple):
@@ -29,7 +29,7 @@ def pd() -> Controller:
 
     def check(params: PDParams) -> None:
         check_params_type(params, PDParams)
-        check_finite_scalar("kp", params.kp)
-        check_finite_scalar("kd", params.kd)
+        check_scalar_param("kp", params.kp)
+        check_scalar_param("kd", params.kd)
 
     return Controller(init, step, check, batched=True)
