@@ -165,8 +165,9 @@ def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, d
     Args:
       plant: the plant (its number of modes, and a sampled plant's ``dt``).
       horizon_s: simulated time (s); the paper's figures show 3 s.
-      dt: sample time (s); default: a sampled plant's own ``dt``, else the paper's 1 ms. A
-        different ``dt`` than a sampled plant's is refused.
+      dt: sample time (s); default: a sampled plant's own ``dt`` (needed when that is
+        traced, under ``jit`` or ``vmap``), else the paper's 1 ms. A different ``dt`` than a
+        sampled plant's is refused.
       reading: ``"printed"`` (default): in the printed order, q_1(0) = 1e-3 m and
         q_1_dot(0) = 1e-5 m/s. ``"block"``: the numbers read in jaxflex's state order,
         q_2(0) = 1e-3 m and q_1_dot(0) = 1e-5 m/s (needs n_modes >= 2).
@@ -174,21 +175,15 @@ def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, d
     """
     n = n_modes_of(plant)
     plant_dt = float(plant.dt) if isinstance(plant, DiscretePlant) and is_concrete(plant.dt) else None
+    if dt is None and isinstance(plant, DiscretePlant) and plant_dt is None:
+        raise ValueError("paper_scenario: the sampled plant's dt is traced (under jit or vmap), and the horizon's number of samples must be known: pass dt=... (s)")
     if dt is None:
         dt = 1e-3 if plant_dt is None else plant_dt
     elif plant_dt is not None and not math.isclose(checks.number("dt", dt, strict=True, unit="seconds"), plant_dt, rel_tol=1e-6):  # a float32 plant holds dt rounded
         raise ValueError(f"dt = {dt!r} s differs from the sampled plant's dt = {plant_dt:.7g} s: leave dt out, or sample the plant at it")
     steps = horizon_steps(horizon_s, dt)
-    dtype = _float_dtype(plant.C.dtype if dtype is None else dtype)
+    dtype = checks.float_dtype("dtype", plant.C.dtype if dtype is None else dtype)
     return Scenario(jnp.asarray(_paper_x0(n, reading), dtype), jnp.zeros((steps, 1), dtype), jnp.zeros((steps, 2), dtype))
-
-
-def _float_dtype(dtype: Any) -> np.dtype:
-    """``dtype`` (None: JAX's default float) when it is a floating dtype; else ValueError."""
-    dtype = jnp.zeros((), dtype).dtype
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise ValueError(f"dtype must be a floating dtype; got {dtype}")
-    return dtype
 
 
 def _is_raw_key(key: jax.Array) -> bool:
@@ -231,7 +226,7 @@ def initial_condition(x0: ArrayLike, steps: int, dtype=None) -> Scenario:
         checks.real_array("x0", x0)
     x0 = jnp.asarray(x0)
     if dtype is not None or not jnp.issubdtype(x0.dtype, jnp.floating):  # an int32 scenario would only be refused by rollout
-        x0 = x0.astype(_float_dtype(dtype))
+        x0 = x0.astype(checks.float_dtype("dtype", dtype))
     if x0.ndim != 1:
         raise ValueError(f"x0 must have shape (n_x,); got {x0.shape}")
     steps = checks.integer("steps", steps)
@@ -341,7 +336,7 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
         raise ValueError(f"key must be a JAX PRNG key (jax.random.key(seed)); got {type(key).__name__} {key!r}")
     n = checks.integer("n (number of scenarios)", n)
     n_modes = beam.check_n_modes(n_modes)
-    dtype = _float_dtype(dtype)
+    dtype = checks.float_dtype("dtype", dtype)
     steps, dt = spec.steps, spec.dt
     n_q = n_modes + 1
     keys = jax.random.split(key, 10)

@@ -96,6 +96,21 @@ def test_paper_scenario_refuses_a_horizon_or_dt_that_is_not_a_number(name, value
         paper_scenario(make_plant(), **{name: value})
 
 
+def test_paper_scenario_of_a_traced_plant_needs_its_dt():
+    """Under jit a sampled plant's dt is traced: the scenario took 1 ms for it, so a 2 ms
+    plant ran twice the horizon asked for. It is refused unless dt is given, and then used."""
+    from jaxflex import discretize, make_plant, rollout
+    from jaxflex.controllers import OpenLoopParams, open_loop
+    from jaxflex.scenarios import paper_scenario
+
+    plant = discretize(make_plant(), 2e-3)
+    assert paper_scenario(plant, 1.0).force.shape == (500, 1)
+    with pytest.raises(ValueError, match=r"the sampled plant's dt is traced .* pass dt="):
+        jax.jit(lambda P: paper_scenario(P, 1.0).force)(plant)
+    end = jax.jit(lambda P: rollout(P, open_loop(), OpenLoopParams(), paper_scenario(P, 1.0, dt=2e-3)).t[-1])(plant)
+    assert float(end) == pytest.approx(0.998)
+
+
 def test_an_impulse_that_outlasts_the_horizon_is_refused():
     """A pulse starts in the first half of the horizon: one longer than horizon_s / 2 was cut off
     at the end of the horizon (a 0.2 s pulse over 0.05 s lasted 26-44 samples, not 200)."""
@@ -172,14 +187,14 @@ def test_sample_scenarios_and_initial_condition_name_bad_inputs():
     for key in (0, np.uint32(3), jnp.zeros(3, jnp.uint32)):
         with pytest.raises(ValueError, match=r"key must be a JAX PRNG key \(jax.random.key\(seed\)\)"):
             sample_scenarios(spec, key, 2)
-    with pytest.raises(ValueError, match=r"dtype must be a floating dtype; got int32"):
+    with pytest.raises(ValueError, match=r"dtype must be a floating dtype \(jnp.float32, jnp.float64\); got int32"):
         sample_scenarios(spec, jax.random.key(0), 2, dtype=jnp.int32)
     # both kinds of key draw the same scenarios
     new, legacy = sample_scenarios(spec, jax.random.key(1), 3), sample_scenarios(spec, jax.random.PRNGKey(1), 3)
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(legacy)))
     with pytest.raises(ValueError, match=r"x0 must be a real number or an array of real numbers; got 'abc'"):
         initial_condition("abc", 10)
-    with pytest.raises(ValueError, match=r"dtype must be a floating dtype; got int32"):
+    with pytest.raises(ValueError, match=r"dtype must be a floating dtype \(jnp.float32, jnp.float64\); got int32"):
         initial_condition([0.0] * 6, 10, dtype=jnp.int32)
     sc = initial_condition([0, 1, 0, 0, 0, 0], 10)
     assert sc.x0.dtype == jnp.zeros(()).dtype and sc.x0.tolist() == [0, 1, 0, 0, 0, 0]
