@@ -68,6 +68,18 @@ def instance(name: str, value: Any, expected: type | tuple[type, ...], build: st
     return value
 
 
+def float_dtype(name: str, dtype: Any) -> np.dtype:
+    """``dtype`` (``None``: JAX's default float) as a NumPy dtype when it is a floating one;
+    an integer dtype would truncate every value cast to it (a 5 ms delay to 0)."""
+    try:
+        resolved = jnp.zeros((), dtype).dtype
+    except TypeError as err:
+        raise ValueError(f"{name} must be a floating dtype (jnp.float32, jnp.float64); got {dtype!r}") from err
+    if not jnp.issubdtype(resolved, jnp.floating):
+        raise ValueError(f"{name} must be a floating dtype (jnp.float32, jnp.float64); got {resolved}")
+    return resolved
+
+
 def real_array(name: str, value: Any, *, scalar: bool = False) -> np.ndarray:
     """``value`` (a number or an array of them, concrete) as a NumPy array of a real dtype;
     ``scalar`` names a number alone as accepted (the caller checks the shape).

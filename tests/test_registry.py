@@ -73,6 +73,12 @@ def test_dtype_sets_every_parameter_leaf():
     hand = (DFSParams(jnp.float32(55.0), jnp.float32(0.005)), fuzzy_params(dtype=jnp.float32))
     ys = measurements(jnp.float32)
     np.testing.assert_array_equal(torques(controller, params, ys), torques(combine(dfs(DT), fuzzy()), hand, ys))
+    # An integer dtype truncated the 5 ms delay and k2 to 0, and the check then named them.
+    for build in (lambda: by_name("dfs+fuzzy", dt=DT, dtype=jnp.int32), lambda: fuzzy_params(dtype=jnp.int32)):
+        with pytest.raises(ValueError, match=re.escape("dtype must be a floating dtype (jnp.float32, jnp.float64); got int32")):
+            build()
+    with pytest.raises(ValueError, match=re.escape("dtype must be a floating dtype (jnp.float32, jnp.float64); got 'foo'")):
+        fuzzy_params(dtype="foo")
 
 
 @pytest.mark.parametrize("name", ["pid", "DFS", "dfs + fuzzy", "", None])

@@ -16,6 +16,7 @@ from typing import Any, Mapping
 import jax
 import jax.numpy as jnp
 
+from jaxflex import checks
 from jaxflex.controllers.base import Controller, OpenLoopParams, combine, open_loop
 from jaxflex.controllers.dfs import DFSParams, dfs
 from jaxflex.controllers.fuzzy import fuzzy, fuzzy_params
@@ -96,6 +97,8 @@ def by_name(
     if delay not in DELAYS:
         raise ValueError(f"delay must be one of {DELAYS}; got {delay!r}")
     values = param_values(params)
+    if dtype is not None:
+        dtype = checks.float_dtype("dtype", dtype)
     scalar = float if dtype is None else (lambda v: jnp.asarray(v, dtype))
     parts = []
     if name in ("dfs", "dfs+fuzzy"):
