@@ -169,7 +169,7 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
         if is_concrete(mode_freqs_hz):
             checks.real_array("mode_freqs_hz", mode_freqs_hz)
         freqs = jnp.asarray(mode_freqs_hz)
-        if freqs.ndim > 1 + len(batch) or (freqs.ndim == 2 and freqs.shape[0] != batch[0]):
+        if freqs.ndim == 0 or freqs.ndim > 1 + len(batch) or (freqs.ndim == 2 and freqs.shape[0] != batch[0]):
             raise ValueError(f"mode_freqs_hz must be a 1-D array of frequencies (Hz){f', or {batch[0]} of them (one row per scenario)' if batch else ''}; got shape {freqs.shape}")
         if is_concrete(freqs) and not np.all(np.isfinite(np.asarray(freqs)) & (np.asarray(freqs) >= 0)):  # NumPy: no tracer under jit
             raise ValueError(f"mode_freqs_hz must be finite frequencies >= 0 (Hz); got {np.asarray(freqs)}")

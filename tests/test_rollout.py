@@ -629,6 +629,8 @@ def test_paper_scenario_follows_the_sampled_plant_and_rollout_names_bad_inputs(p
     assert all(np.array_equal(a, b) for a, b in zip(as_float, as_array))
     with pytest.raises(ValueError, match="mode_freqs_hz must be finite frequencies >= 0"):
         jf.rollout(plant2, controller, params, sc, output="metrics", mode_freqs_hz=[float("nan")])
+    with pytest.raises(ValueError, match=re.escape("mode_freqs_hz must be a 1-D array of frequencies (Hz); got shape ()")):
+        jf.rollout(plant2, controller, params, sc, output="metrics", mode_freqs_hz=13.3)  # failed deep in lax's broadcasting
     with pytest.raises(ValueError, match="mode_freqs_hz must be a 1-D array"):
         jf.rollout(plant2, controller, params, sc, output="metrics", mode_freqs_hz=[[1.0, 2.0], [3.0, 4.0]])
     # float32 plant and scenario (this suite runs with x64 on): float64 parameters would widen
