@@ -123,6 +123,9 @@ class MCConfig:
         object.__setattr__(self, "fuzzy_temperature", check_temperature(self.fuzzy_temperature, "fuzzy_temperature"))
         object.__setattr__(self, "beam", beam.plain_params(self.beam))
         check_plants(self.scenarios, self.beam, self.n_modes, self.method)  # refuses an arm not finite in the dtype of the run, or RK4 growing one
+        # Out-of-range parameter values are refused here, not when the run starts.
+        controller, params = controller_and_params(self.controller, self.params, self.scenarios.dt, self.capacity, self.delay, self.pade_order, self.fuzzy_temperature)
+        controller.check(params)
 
     @property
     def run_chunk(self) -> int:

@@ -238,6 +238,11 @@ def test_statistics_do_not_depend_on_the_device_count(tmp_path, full_run):
         (lambda: MCConfig(percentiles=(5.0, 99.99999, 100.0)), r"percentiles must differ in their first 6 significant digits .*\['p5', 'p100', 'p100'\]"),
         (lambda: ScenarioSpec(youngs_modulus_rel=1.0), r"youngs_modulus_rel must be in \[0, 1\); got 1.0"),
         (lambda: ScenarioSpec(impulse_max_n=1.0, impulse_duration_s=5e-4), "impulse_duration_s must be >= dt = 0.001 s when impulses are on; got 0.0005"),
+        # parameter values, when the config is made (they were refused only when the run started)
+        (lambda: MCConfig(params={"tau_s": -1.0}), r"tau_s must be finite and > 0; got -1.0"),
+        (lambda: MCConfig(params={"tau_s": 1.0}), r"tau_s must be in \(0, 0.064\] s .*the capacity key of a tune or montecarlo config"),
+        (lambda: MCConfig(controller="fuzzy", params={"k1": -1}), r"k1 must be finite and > 0; got -1"),
+        (lambda: MCConfig(params={"tau_s": 0.0055}, delay="nearest"), r"whole number of samples .*delay = 'linear' or 'cubic' in by_name and the tune and montecarlo configs"),
     ],
 )
 def test_impossible_descriptions_are_refused(make, match):

@@ -146,7 +146,7 @@ def dfs(
         if interpolation == "nearest" and not delay.whole_samples(steps):
             raise ValueError(
                 f"tau_s must be a whole number of samples of dt = {dt:g} s with interpolation='nearest'; got {tau:g} s "
-                f"({steps:g} samples). Use interpolation='linear' or 'cubic' for fractional delays."
+                f"({steps:g} samples). Use interpolation='linear' or 'cubic' for fractional delays (delay = 'linear' or 'cubic' in by_name and the tune and montecarlo configs)."
             )
 
     return Controller(init, step, check, dt, batched=True)
