@@ -341,6 +341,27 @@ def test_validation_errors(plant):
         st.rightmost_root(plant, PAPER_K, 0.005, 1)
 
 
+def test_the_matrices_check_their_gain_and_delay(plant):
+    """deflated_loop_matrix and generator_matrix took any delay: a delay longer than the
+    history dropped the delayed term (a loop with spectral radius 1.055 looked stable, 0.995),
+    and tau = 0 gave an inf/NaN generator. Traced values still pass (vmap over delays)."""
+    dplant = discretize(plant, 1e-3, "zoh")
+    with pytest.raises(ValueError, match=r"delay_steps must be a number of samples in \[1, n_hist = 5\]"):
+        st.deflated_loop_matrix(dplant, PAPER_K, 10.0, 5)
+    with pytest.raises(ValueError, match=r"delay_steps must be a number of samples in \[1, n_hist = 5\].*got nan"):
+        st.deflated_loop_matrix(dplant, PAPER_K, float("nan"), 5)
+    with pytest.raises(ValueError, match="k must be finite"):
+        st.deflated_loop_matrix(dplant, float("inf"), 5, 5)
+    for tau in (0.0, -0.005, float("nan")):
+        with pytest.raises(ValueError, match="tau_s must be finite and > 0"):
+            st.generator_matrix(plant, PAPER_K, tau)
+    with pytest.raises(ValueError, match="k must be finite"):
+        st.generator_matrix(plant, float("nan"), 0.005)
+    radii = jax.vmap(lambda d: jnp.max(jnp.abs(jnp.linalg.eigvals(st.deflated_loop_matrix(dplant, PAPER_K, d, 12)))))(jnp.asarray([5.0, 10.0]))
+    np.testing.assert_allclose(radii, [float(st.spectral_radius(dplant, PAPER_K, d)) for d in (5, 10)], rtol=1e-9)
+    assert radii[1] > 1  # the 10-sample loop is unstable when its history holds the delay
+
+
 def test_each_analysis_refuses_the_other_kind_of_plant(plant):
     """A sampled plant given to the continuous-time analyses was read as if ``Ad`` were ``A``:
     critical_delays, crossing_frequencies, characteristic_polynomials, delta and

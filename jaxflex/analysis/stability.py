@@ -114,6 +114,14 @@ def delay_steps_of(tau_s: ArrayLike, dt: ArrayLike) -> int:
     return int(round(steps))
 
 
+def _check_gain_and_delay(k: ArrayLike, tau_s: ArrayLike) -> None:
+    """``check_gain`` and ``check_delay`` of whichever is concrete (traced ones: vmap, jit)."""
+    if not isinstance(k, jax.core.Tracer):
+        check_gain(k)
+    if not isinstance(tau_s, jax.core.Tracer):
+        check_delay(tau_s)
+
+
 def _check_delay_steps(delay_steps: int, name: str = "delay_steps") -> int:
     return checks.integer(name, delay_steps, unit="samples")
 
@@ -520,8 +528,9 @@ def generator_matrix(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, n_cheb:
     by the histories with ``x(0) = 0`` and ``c u(theta_j) = 0``, whose only eigenvalues are
     those of the differentiation matrix with a zero condition at 0 (spurious, far left); the
     characteristic-root approximations are the same. Traced k and tau are fine (vmap over
-    both); ``n_cheb`` (M) is static.
+    both); concrete ones are checked; ``n_cheb`` (M) is static.
     """
+    _check_gain_and_delay(k, tau_s)
     return _generator(check_continuous(plant), k, tau_s, _check_n_cheb(n_cheb))
 
 
@@ -553,10 +562,7 @@ def characteristic_roots(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, n_c
     decreasing real part. Only the rightmost few are accurate. Concrete k, tau are checked;
     traced ones are fine (vmap/jit over them with the plant closed over)."""
     check_continuous(plant)
-    if not isinstance(k, jax.core.Tracer):
-        check_gain(k)
-    if not isinstance(tau_s, jax.core.Tracer):
-        check_delay(tau_s)
+    _check_gain_and_delay(k, tau_s)
     m = _check_n_cheb(n_cheb)
     dtype = plant.A.dtype
     v = jnp.asarray(structural_directions(plant), dtype)
@@ -649,8 +655,9 @@ def deflated_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayL
 
     Its eigenvalues are those of :func:`sampled_loop_matrix` with one eigenvalue 1 removed per
     structural direction. ``delay_steps`` may be fractional and traced (linear interpolation;
-    see ``_loop_matrix``); the plant must be concrete.
+    see ``_loop_matrix``), in [1, n_hist]; the plant must be concrete.
     """
+    n_hist = _check_sampled_args(k, delay_steps, n_hist)
     return _deflated(plant, k, delay_steps, jnp.asarray(structural_directions(check_sampled(plant)), plant.Ad.dtype), n_hist)
 
 
