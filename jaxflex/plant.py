@@ -169,11 +169,15 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") ->
 
     Raises:
       ValueError: naming ``plant`` when it is not a LinearPlant, ``dt`` or ``method`` out of
-        range, or a sampled matrix that is not finite.
+        range, a sampled matrix that is not finite, or (plant and ``dt`` concrete) an RK4
+        step that amplifies a mode the continuous plant does not grow
+        (:func:`check_rk4_step`): such a map blows up where the arm rings down.
     """
     check_continuous(plant)
     check_dt(dt)
     check_method(method)
+    if method == "rk4" and not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((plant, dt))):
+        check_rk4_step(plant, dt)
     sampled = _discretize(plant, dt, method)
     if not isinstance(dt, jax.core.Tracer):  # a traced dt (jit, vmap or grad over it) makes traced maps: nothing to check
         hint = " or method = 'zoh'" if method == "rk4" else ""

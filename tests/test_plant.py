@@ -172,10 +172,17 @@ def test_float32_is_preserved():
     assert d.Ad.dtype == jnp.float32 and d.Bd.dtype == jnp.float32
 
 
+def _rk4_ad(plant, dt):
+    """The RK4 map at ``dt``, unchecked: ``discretize`` refuses an amplifying step when the
+    plant and ``dt`` are concrete, and a traced ``dt`` is what vmap over steps gives."""
+    return np.asarray(jax.jit(lambda d: discretize(plant, d, "rk4").Ad)(dt))
+
+
 def test_rk4_step_that_amplifies_a_mode_is_refused_by_the_configs():
     """A stiff arm (modes at 216 and 695 Hz) at 1 ms: one RK4 step multiplies the 695 Hz mode
     by |R(i omega dt)| > 1 (omega dt = 4.37 > 2.83), so tune and montecarlo ran NaN and blamed
-    the learning rate. The configs now refuse it by name; ZOH, or a short enough dt, is fine."""
+    the learning rate. The configs now refuse it by name, and so does discretize itself (it
+    returned the growing map); ZOH, or a short enough dt, is fine."""
     from jaxflex.beam import natural_frequencies_hz
     from jaxflex.montecarlo import MCConfig
     from jaxflex.plant import check_rk4_step
@@ -185,9 +192,11 @@ def test_rk4_step_that_amplifies_a_mode_is_refused_by_the_configs():
     stiff = BeamParams(length_m=0.25, thickness_m=8e-3)
     plant = make_plant(stiff, 2)
     omega = 2 * np.pi * np.asarray(natural_frequencies_hz(stiff, 2)).max()
-    rk4 = np.asarray(discretize(plant, 1e-3, "rk4").Ad)
-    assert np.abs(np.linalg.eigvals(rk4)).max() > 1  # what the check stands for
+    assert np.abs(np.linalg.eigvals(_rk4_ad(plant, 1e-3))).max() > 1  # what the check stands for
     message = r"method = 'rk4' with dt = 0.001 s is unstable for this arm: its mode at 69\d.\d Hz has omega dt = 4.3\d"
+    with pytest.raises(ValueError, match=message):
+        discretize(plant, 1e-3)
+    discretize(plant, 1e-3, "zoh")
     for make in (MCConfig, TuneConfig):
         with pytest.raises(ValueError, match=message):
             make(beam=stiff)
@@ -209,14 +218,14 @@ def test_rk4_step_check_refuses_exactly_where_the_rk4_map_grows():
     plant = make_plant(BeamParams(length_m=0.25, thickness_m=8e-3), 2)
 
     def grows(dt):
-        return np.abs(np.linalg.eigvals(np.asarray(discretize(plant, dt, "rk4").Ad))).max() > 1 + 1e-9
+        return np.abs(np.linalg.eigvals(_rk4_ad(plant, dt))).max() > 1 + 1e-9
 
     lo, hi = 3e-4, 1e-3  # stable, unstable
     assert not grows(lo) and grows(hi)
     for _ in range(50):
         lo, hi = (lo, (lo + hi) / 2) if grows((lo + hi) / 2) else ((lo + hi) / 2, hi)
     check_rk4_step(plant, lo * (1 - 1e-3))
-    assert np.abs(np.linalg.eigvals(np.asarray(discretize(plant, hi * (1 + 1e-3), "rk4").Ad))).max() < 1.01
+    assert np.abs(np.linalg.eigvals(_rk4_ad(plant, hi * (1 + 1e-3)))).max() < 1.01
     with pytest.raises(ValueError, match="method = 'rk4' with dt"):
         check_rk4_step(plant, hi * (1 + 1e-3))
 
@@ -282,11 +291,14 @@ def test_arm_that_overflows_float32_is_refused_by_name(field, value, match):
 
 
 def test_sampled_plant_that_overflows_is_refused():
-    """A stiff arm's RK4 polynomial in float32 overflows (the exact ZOH does not)."""
+    """A stiff arm's RK4 polynomial in float32 overflows (the exact ZOH does not). The step
+    is refused first for what makes it overflow: it amplifies the arm's modes; traced, the
+    map itself is checked."""
     with jax.enable_x64(False):
         stiff = make_plant(BeamParams(youngs_modulus_pa=1e38))
-        with pytest.raises(ValueError, match=r"the plant's Ad must be finite in float32; got inf or NaN at dt = 0.001 s, method = 'rk4' \(use a smaller dt or method = 'zoh'\)"):
+        with pytest.raises(ValueError, match=r"method = 'rk4' with dt = 0.001 s is unstable for this arm"):
             discretize(stiff, 1e-3, "rk4")
+        assert not np.all(np.isfinite(np.asarray(jax.jit(lambda d: discretize(stiff, d, "rk4").Ad)(1e-3))))
         assert np.all(np.isfinite(discretize(stiff, 1e-3, "zoh").Ad))
 
 
