@@ -94,6 +94,8 @@ def test_bad_options_are_refused_by_name():
         by_name("dfs", dt=DT, delay="sinc")
     with pytest.raises(ValueError, match=re.escape("params: unknown parameter name(s) ['tau']; accepted: ['k', 'tau_s', 'k1', 'k2', 'k3']")):
         by_name("dfs", dt=DT, params={"tau": 0.004})
+    with pytest.raises(ValueError, match=re.escape("params must be a mapping of parameter values by name ({'k': 55.0, 'tau_s': 0.005}); got 'k=5'")):
+        by_name("dfs", dt=DT, params="k=5")  # dict("k=5") failed with "dictionary update sequence element"
     with pytest.raises(ValueError, match=re.escape("params['k'] must be a finite number; got 'fast'")):
         by_name("dfs", dt=DT, params={"k": "fast"})
     # a bool or a numeric string is not a gain either (float() would take both), nor a NaN

@@ -448,6 +448,15 @@ def test_fractional_delay_accepted_with_linear_interpolation(plant2):
     assert np.all(np.isfinite(np.asarray(traj.x)))
 
 
+def test_a_controller_sample_time_that_is_not_a_time_is_refused(plant2):
+    """A Controller's dt of "0.001" failed in NumPy's ufuncs, and 0 was reported as another dt
+    than the plant's."""
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    for dt in ("0.001", 0.0, -1e-3, float("nan"), True):
+        with pytest.raises(ValueError, match=re.escape(f"controller.dt must be a finite number of seconds > 0; got {dt!r}")):
+            jf.rollout(plant2, pd()._replace(dt=dt), PDParams(1.0, 0.1), sc)
+
+
 def test_controller_built_for_another_dt_is_rejected(plant2):
     # dfs(dt=2e-3) reads tau = 6 ms as 3 samples: on a 1 ms plant that would simulate a 3 ms delay.
     sc = paper_scenario(plant2, horizon_s=0.01)

@@ -66,6 +66,8 @@ def check_controller(name: str, controller: Any) -> Controller:
     for field in ("init", "step", "check"):
         if not callable(getattr(controller, field)):
             raise ValueError(f"{name}.{field} must be callable (see jaxflex.controllers.base); got {getattr(controller, field)!r}")
+    if controller.dt is not None:
+        checks.number(f"{name}.dt", controller.dt, strict=True, unit="seconds")
     if not isinstance(controller.batched, bool):
         raise ValueError(f"{name}.batched must be True or False (see jaxflex.controllers.base); got {controller.batched!r}")
     return controller

@@ -39,6 +39,8 @@ def param_values(params: Mapping[str, Any] | None, what: str = "params") -> dict
       ValueError: naming ``what[key]`` for an unknown name or a value that is not a finite
         number (bools and strings included).
     """
+    if params is not None and not isinstance(params, Mapping):
+        raise ValueError(f"{what} must be a mapping of parameter values by name ({{'k': 55.0, 'tau_s': 0.005}}); got {params!r}")
     given = dict(params or {})
     unknown = sorted(set(given) - set(PAPER_PARAMS))
     if unknown:
