@@ -159,13 +159,15 @@ def check_dt(dt: ArrayLike) -> None:
         raise ValueError(f"dt must be a finite scalar > 0 (seconds); got {dt}")
 
 
-def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") -> DiscretePlant:
+def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4", *, check_rk4: bool = True) -> DiscretePlant:
     """Sample the plant with inputs held over each step of ``dt`` seconds.
 
     Args:
       plant: continuous-time plant.
       dt: sample time (s), finite and > 0; default 1 ms (the paper's 1 kHz).
       method: ``"rk4"`` (the paper's integrator) or ``"zoh"`` (exact).
+      check_rk4: refuse an RK4 step that amplifies a mode (below); ``False`` returns such a
+        map as it is, to study it (``jaxflex stability`` reports its spectral radius).
 
     Raises:
       ValueError: naming ``plant`` when it is not a LinearPlant, ``dt`` or ``method`` out of
@@ -176,7 +178,9 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4") ->
     check_continuous(plant)
     check_dt(dt)
     check_method(method)
-    if method == "rk4" and not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((plant, dt))):
+    if check_rk4 is not False and check_rk4 is not True:
+        raise ValueError(f"check_rk4 must be True or False; got {check_rk4!r}")
+    if method == "rk4" and check_rk4 and not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((plant, dt))):
         check_rk4_step(plant, dt)
     sampled = _discretize(plant, dt, method)
     if not isinstance(dt, jax.core.Tracer):  # a traced dt (jit, vmap or grad over it) makes traced maps: nothing to check

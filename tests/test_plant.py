@@ -173,9 +173,11 @@ def test_float32_is_preserved():
 
 
 def _rk4_ad(plant, dt):
-    """The RK4 map at ``dt``, unchecked: ``discretize`` refuses an amplifying step when the
-    plant and ``dt`` are concrete, and a traced ``dt`` is what vmap over steps gives."""
-    return np.asarray(jax.jit(lambda d: discretize(plant, d, "rk4").Ad)(dt))
+    """The RK4 map at ``dt`` as it is: ``discretize`` refuses an amplifying step unless asked
+    not to, and a traced ``dt`` (jit, vmap over steps) gives the same map unchecked."""
+    ad = np.asarray(discretize(plant, dt, "rk4", check_rk4=False).Ad)
+    np.testing.assert_array_equal(ad, np.asarray(jax.jit(lambda d: discretize(plant, d, "rk4").Ad)(dt)))
+    return ad
 
 
 def test_rk4_step_that_amplifies_a_mode_is_refused_by_the_configs():
@@ -197,6 +199,8 @@ def test_rk4_step_that_amplifies_a_mode_is_refused_by_the_configs():
     with pytest.raises(ValueError, match=message):
         discretize(plant, 1e-3)
     discretize(plant, 1e-3, "zoh")
+    with pytest.raises(ValueError, match="check_rk4 must be True or False; got 0"):
+        discretize(plant, 1e-3, check_rk4=0)
     for make in (MCConfig, TuneConfig):
         with pytest.raises(ValueError, match=message):
             make(beam=stiff)
