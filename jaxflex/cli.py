@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import re
 import signal
@@ -173,9 +174,29 @@ class _Terminated(KeyboardInterrupt):
     so that it ends as after Ctrl-C: temporary files removed, the resume hint printed."""
 
 
-def _on_sigterm(signum: int, frame: Any) -> None:
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
-    raise _Terminated
+# The signal (SIGINT or SIGTERM) whose exception ``main`` has yet to catch. A signal that lands
+# while JAX's garbage-collection callback runs is raised inside that callback, where Python
+# prints the exception and drops it, and the run went on to the end (about 2 % of signals in
+# a tune). The runs' loops call ``_raise_pending`` after each step or chunk, and ``main``
+# once the command is done, so that a dropped one is raised again there.
+_pending_signal: list[int] = []
+
+
+def _interruption(signum: int) -> KeyboardInterrupt:
+    return _Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _on_signal(signum: int, frame: Any) -> None:
+    if signum == signal.SIGTERM:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
+    _pending_signal[:] = [signum]
+    raise _interruption(signum)
+
+
+def _raise_pending(*_: Any) -> None:
+    """Raise the interruption of a signal whose exception was dropped (see above)."""
+    if _pending_signal:
+        raise _interruption(_pending_signal[0])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -188,10 +209,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     out = getattr(args, "out", None)
     new_out = bool(out) and not os.path.lexists(out)
-    handles_sigterm = threading.current_thread() is threading.main_thread()  # signal.signal works there only
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if handles_sigterm else None
+    handles_signals = threading.current_thread() is threading.main_thread()  # signal.signal works there only
+    previous = {signum: signal.signal(signum, _on_signal) for signum in (signal.SIGINT, signal.SIGTERM)} if handles_signals else {}
+    _pending_signal.clear()
     try:
-        return _run(args)
+        status = _run(args)
+        _raise_pending()  # one dropped after the runs' last check: their files are complete, but the user asked to stop
+        return status
     except (ValueError, OSError) as err:
         print(f"jaxflex {args.command}: error: {err}", file=sys.stderr)
         return 2
@@ -211,8 +235,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"jaxflex {args.command}: {'terminated (SIGTERM)' if terminated else 'interrupted'}{hint}", file=sys.stderr)
         return 143 if terminated else 130
     finally:
-        if handles_sigterm:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+        _pending_signal.clear()
+        for signum, handler in previous.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
         if new_out:
             _remove_if_empty(out)
 
@@ -233,9 +258,11 @@ def console() -> None:
 def _remove_if_empty(folder: str) -> None:
     """Remove ``folder`` (which this run created) when a failed or interrupted run wrote no
     file in it, so that no empty result folder is left behind; a folder holding any file (a
-    checkpoint to resume from, finished results) is kept."""
-    if any(files for _, _, files in os.walk(folder)):
+    checkpoint to resume from, finished results) is kept. The run lock counts for none."""
+    if any(name != fileio.RUN_LOCK for _, _, files in os.walk(folder) for name in files):
         return
+    with contextlib.suppress(FileNotFoundError):
+        os.remove(os.path.join(folder, fileio.RUN_LOCK))
     for root, _, _ in sorted(os.walk(folder), key=lambda entry: -len(entry[0])):
         try:
             os.rmdir(root)
@@ -386,7 +413,7 @@ def _tune(args: argparse.Namespace) -> int:
         learning_rate=args.lr,
     )
     print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
-    summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress)
+    summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress, on_step=_raise_pending)
     obj = summary["objective"]
     def gains(named: dict) -> str:  # 6 digits: float32 runs store 55 as 55.00000762939453
         return ", ".join(f"{name} = {value:.6g}" for name, value in named.items())
@@ -461,7 +488,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     if tuned is not None and (differences := tuned.differences(config.beam, config.n_modes, config.scenarios.dt, config.method)):
         print(f"note: {args.params} was tuned for {', '.join(differences)}; --config sets what runs here", file=sys.stderr)
     print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
-    summary = run_montecarlo(config, args.out, resume=args.resume, progress=not args.no_progress)
+    summary = run_montecarlo(config, args.out, resume=args.resume, progress=not args.no_progress, on_chunk=_raise_pending)
     tip = summary["metrics"]["peak_tip_deflection_m"]
     spread = ", ".join(f"p{p:g} {format_value(tip[f'p{p:g}'], '.4g')}" for p in summary["percentiles"])
     print(f"{summary['n_scenarios']} scenarios on {summary['devices']} device(s): diverged fraction {summary['diverged_fraction']:.4g}")

@@ -9,10 +9,12 @@ every write first sweeps those of its folder that no living process holds.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import math
 import os
+import pathlib
 import shutil
 import tempfile
 import time
@@ -25,6 +27,9 @@ except ImportError:  # not POSIX: no locks, so the leftovers of killed runs are 
     fcntl = None
 
 TEMP_PREFIX = ".tmp-"
+RUN_LOCK = ".jaxflex-run.lock"
+"""The empty file a resumable run holds locked in its folder while it runs (:func:`run_lock`)."""
+_HELD_RUN_LOCKS: set[str] = set()  # the folders whose run lock this process holds
 # A temporary entry is locked right after it is made; one younger than this may still be in
 # that gap, so it is never swept.
 _SWEEP_MIN_AGE_S = 10.0
@@ -72,8 +77,42 @@ def sweep_stale(folder: str | os.PathLike) -> None:
             os.close(fd)
 
 
+@contextlib.contextmanager
+def run_lock(folder: str | os.PathLike, name: str = "out_dir") -> Iterator[None]:
+    """Hold ``folder``'s run lock (an ``flock`` on ``RUN_LOCK``, made if missing and left in
+    place) while the block runs. A second run into the same folder at the same time is
+    refused by ``name``: it would pass the folder's checks before the first wrote anything,
+    then interleave its chunks, checkpoints and figures with the first's. A block inside
+    another of the same process on the same folder holds it already (``run_tune`` around
+    ``tune``). Without ``fcntl`` (not POSIX), or on a file system without locks, nothing is
+    held.
+    """
+    folder = os.fspath(folder)
+    os.makedirs(folder, exist_ok=True)
+    key = os.path.realpath(folder)
+    if fcntl is None or key in _HELD_RUN_LOCKS:
+        yield
+        return
+    fd = os.open(os.path.join(folder, RUN_LOCK), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"{name} {folder} is in use by another run still going: wait for it to end, or choose another folder") from None
+        except OSError:  # a file system without locks
+            pass
+        _HELD_RUN_LOCKS.add(key)
+        try:
+            yield
+        finally:
+            _HELD_RUN_LOCKS.discard(key)
+    finally:
+        os.close(fd)
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
-    """Call ``write(tmp_path)`` on a temporary file beside ``path``, then rename it over ``path``.
+    """Call ``write(tmp_path)`` on a temporary file beside ``path``, then rename it over ``path``
+    once its data is on disk (``fsync``).
 
     The file gets the permissions a plain ``open(path, "w")`` would give it: those of the file
     it replaces, or else the default under the process umask (a temporary file is created
@@ -88,6 +127,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
         _lock(fd)  # held until the file is renamed or removed: no sweep takes it meanwhile
         write(tmp)
         os.chmod(tmp, _mode_for(path))
+        os.fsync(fd)  # on disk before the rename: after a power loss the file is the old or the new one, never empty
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -167,13 +207,32 @@ def digest(fields: Mapping[str, Any]) -> str:
     return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
 
+@functools.lru_cache(maxsize=1)
+def program() -> str:
+    """The program a resumable run records in its fingerprint, so that a resume by another one
+    is refused instead of mixing two programs' results in one summary: a hash of the source
+    of ``jaxflex`` and ``tuning``, and the versions of jax and jaxlib, whose numerics may
+    change between releases."""
+    import jax
+    import jaxlib
+
+    source = hashlib.sha256()
+    root = pathlib.Path(__file__).resolve().parent.parent
+    for package in ("jaxflex", "tuning"):
+        for path in sorted((root / package).rglob("*.py")):
+            source.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    return f"jaxflex source {source.hexdigest()[:12]}, jax {jax.__version__}, jaxlib {jaxlib.__version__}"
+
+
 def changed_fields(before: Any, now: Mapping[str, Any]) -> str:
     """What a refused resume names: ``"changed: seed, n_modes"``, the keys of ``now`` whose
     values differ from those recorded in ``before`` (a folder's configuration, as read back),
-    or ``"the configuration changed"`` when no key both share differs."""
+    a text value with both sides (``program: 'a' -> 'b'``), or ``"the configuration changed"``
+    when no key both share differs."""
     before = before if isinstance(before, Mapping) else {}
     changed = sorted(k for k in now if k in before and before[k] != now[k])
-    return f"changed: {', '.join(changed)}" if changed else "the configuration changed"
+    named = [f"{k}: {before[k]!r} -> {now[k]!r}" if isinstance(now[k], str) and isinstance(before[k], str) else k for k in changed]
+    return f"changed: {', '.join(named)}" if changed else "the configuration changed"
 
 
 def write_json(path: str | os.PathLike, data: Any) -> None:

@@ -136,12 +136,14 @@ class MCConfig:
         """What a resumed run must share with the folder, as plain JSON values: everything but
         ``n_scenarios`` (more may be asked of a resumed run), ``chunk`` (the folder records
         the chunk it was run with) and what only the summary and the figures read
-        (``percentiles``, ``band_scenarios``: a resume may ask for others), and the dtype."""
+        (``percentiles``, ``band_scenarios``: a resume may ask for others), and the dtype and
+        the program (``fileio.program``)."""
         d = dataclasses.asdict(self)
         d["beam"] = self.beam._asdict()
         for name in ("n_scenarios", "chunk", *_SUMMARY_ONLY):
             d.pop(name)
         d["dtype"] = str(jnp.zeros(()).dtype)
+        d["program"] = fileio.program()
         return json.loads(json.dumps(fileio.to_jsonable(d)))
 
     def fingerprint(self) -> str:
@@ -274,7 +276,12 @@ def run_montecarlo(
       ValueError: bad configuration, or a resume into a folder made by another configuration.
     """
     checks.instance("config", config, MCConfig, "build one with MCConfig(...)")
-    out_dir = os.fspath(out_dir)
+    with fileio.run_lock(out_dir, "out_dir (--out)"):
+        return _run_locked(config, os.fspath(out_dir), resume, progress, figures, on_chunk)
+
+
+def _run_locked(config: MCConfig, out_dir: str, resume: bool, progress: bool, figures: bool, on_chunk: Callable[[int], None] | None) -> dict[str, Any]:
+    """``run_montecarlo`` with the folder's run lock held."""
     meta_path, summary_path, chunks_dir = (os.path.join(out_dir, name) for name in (META, "summary.json", "chunks"))
     meta = {"fingerprint": config.fingerprint(), "chunk": config.run_chunk, "config": config.fingerprint_fields()}
     # The folder is checked before any sampling or compiling.

@@ -23,6 +23,55 @@ from jaxflex.scenarios import ScenarioSpec, sample_scenarios
 SPEC = ScenarioSpec(horizon_s=0.3, impulse_max_n=0.5, youngs_modulus_rel=0.1, noise_angle_rad=1e-6)
 
 
+def test_a_run_into_a_folder_another_run_holds_is_refused(tmp_path):
+    """Two runs started into one folder at once both passed its checks before either wrote a
+    file, then wrote their chunks (and tune its checkpoints and figures) over each other's,
+    and a later resume summed chunks of both. A run holds the folder's run lock while it goes;
+    here another process's lock stands in for a run still going (flock: another open file)."""
+    fcntl = pytest.importorskip("fcntl")
+    from jaxflex import fileio
+    from tuning.run import run_tune
+    from tuning.tuner import TuneConfig
+
+    out = tmp_path / "busy"
+    out.mkdir()
+    fd = os.open(out / fileio.RUN_LOCK, os.O_RDWR | os.O_CREAT)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        busy = r"out_dir \(--out\) .*busy is in use by another run still going: wait for it to end, or choose another folder"
+        with pytest.raises(ValueError, match=busy):
+            run_montecarlo(MCConfig(controller="dfs", n_scenarios=4, chunk=4, scenarios=SPEC), out, progress=False, figures=False)
+        with pytest.raises(ValueError, match=busy):
+            run_tune(TuneConfig(controller="dfs", n_scenarios=4, n_heldout=1, steps=1, scenarios=SPEC), out, progress=False)
+        assert os.listdir(out) == [fileio.RUN_LOCK]  # nothing written
+    finally:
+        os.close(fd)
+    summary = run_montecarlo(MCConfig(controller="dfs", n_scenarios=4, chunk=4, scenarios=SPEC), out, progress=False, figures=False)
+    assert summary["n_scenarios"] == 4  # the lock released, the folder takes a run
+
+
+def test_a_resume_by_another_program_is_refused(tmp_path, monkeypatch):
+    """A resume by other code, or another jax, was accepted, and its summary mixed the chunks
+    of two programs (one change to the modal frequencies moved reduction_db_mode2 by 1.7 dB).
+    The folder records the program (a hash of the source, jax's and jaxlib's versions) and a
+    resume by another is refused, naming both; tune's checkpoint records it the same way."""
+    from jaxflex import fileio
+    from tuning.tuner import TuneConfig
+
+    config = MCConfig(controller="dfs", n_scenarios=8, chunk=4, scenarios=SPEC)
+
+    def interrupt(index):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_montecarlo(config, tmp_path / "r", progress=False, figures=False, on_chunk=interrupt)
+    assert config.fingerprint_fields()["program"] == TuneConfig().fingerprint_fields()["program"] == fileio.program()
+    assert fileio.program().startswith("jaxflex source ") and f"jax {jax.__version__}" in fileio.program()
+    monkeypatch.setattr(fileio, "program", lambda: "jaxflex source 000000000000, jax 0.0.0, jaxlib 0.0.0")
+    with pytest.raises(ValueError, match=r"changed: program: 'jaxflex source [0-9a-f]{12}, jax .*' -> 'jaxflex source 000000000000, jax 0.0.0, jaxlib 0.0.0'"):
+        run_montecarlo(config, tmp_path / "r", resume=True, progress=False, figures=False)
+
+
 def test_summary_matches_direct_rollouts(tmp_path, monkeypatch):
     config = MCConfig(controller="dfs", n_scenarios=50, chunk=32, scenarios=SPEC, percentiles=(10.0, 50.0, 90.0))
     titles, real_histograms = [], plotting.histograms

@@ -71,10 +71,11 @@ def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = F
         if os.path.exists(result):
             os.remove(result)
 
-    state = tune(config, out_dir, resume=resume, progress=progress, on_step=on_step, on_start=discard_previous_result)
-    if progress:
-        print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)
-    summary = summarize(state)
-    summary["figures"] = _figures(state, out_dir, summary["objective"]["train"]["paper"])
-    fileio.write_json(result, summary)
+    with fileio.run_lock(out_dir, "out_dir (--out)"):  # tune's, held on to the figures and tuned.json
+        state = tune(config, out_dir, resume=resume, progress=progress, on_step=on_step, on_start=discard_previous_result)
+        if progress:
+            print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)
+        summary = summarize(state)
+        summary["figures"] = _figures(state, out_dir, summary["objective"]["train"]["paper"])
+        fileio.write_json(result, summary)
     return summary

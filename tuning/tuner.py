@@ -128,10 +128,12 @@ class TuneConfig:
 
     def fingerprint_fields(self) -> dict[str, Any]:
         """What a resumed run must share with the checkpoint: everything but ``steps`` (more
-        steps may be asked of a resumed run), and the dtype, as plain JSON values."""
+        steps may be asked of a resumed run), and the dtype and the program
+        (``fileio.program``), as plain JSON values."""
         d = self.to_dict()
         d.pop("steps")
         d["dtype"] = str(jnp.zeros(()).dtype)
+        d["program"] = fileio.program()
         return json.loads(json.dumps(fileio.to_jsonable(d)))
 
     def fingerprint(self) -> str:
@@ -359,7 +361,20 @@ def tune(
     checks.instance("config", config, TuneConfig, "build one with TuneConfig(...)")
     if optimizer is not None:
         checks.instance("optimizer", optimizer, optax.GradientTransformation, "e.g. optax.adam(1e-2)")
-    out_dir = os.fspath(out_dir)
+    with fileio.run_lock(out_dir, "out_dir (--out)"):
+        return _tune_locked(config, os.fspath(out_dir), resume, progress, on_step, optimizer, on_start)
+
+
+def _tune_locked(
+    config: TuneConfig,
+    out_dir: str,
+    resume: bool,
+    progress: bool,
+    on_step: Callable[[int], None] | None,
+    optimizer: optax.GradientTransformation | None,
+    on_start: Callable[[], None] | None,
+) -> dict[str, Any]:
+    """``tune`` with the folder's run lock held."""
     ckpt_path = os.path.join(out_dir, CHECKPOINT)
     fingerprint = config.fingerprint()
     # The folder and the checkpoint's configuration are checked before any sampling or compiling.
