@@ -104,6 +104,12 @@ def test_settling_time_columns_and_validation():
         )
     with pytest.raises(ValueError, match="final_fraction"):
         settling_time(s, DT, final_fraction=0.0)
+    with pytest.raises(ValueError, match=r"final_fraction must be a static Python float in \(0, 1\]; got True"):
+        settling_time(s, DT, final_fraction=True)  # taken as 1
+    with pytest.raises(ValueError, match="band must be a real number; got '0.02'"):
+        settling_time(s, DT, band="0.02")  # taken as 0.02
+    with pytest.raises(ValueError, match="band must be finite and > 0; got nan"):
+        settling_time(s, DT, band=float("nan"))
     with pytest.raises(ValueError, match="dt must be finite and > 0"):
         settling_time(s, -DT)
     for bad in ("1e-3", None, True):  # a string or a bool is not a sample time, though float() takes it

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from jaxflex.analysis import PSDSettings, band_peak, get_window, vibration_reduction_db, welch
+from jaxflex.analysis import PSDSettings, band_mask, band_peak, get_window, vibration_reduction_db, welch
 
 # Same algorithm as scipy in float64 (detrend, window, FFT, scaling); observed worst relative
 # error is ~1e-13, so 1e-6 leaves room for other FFT backends while catching any formula slip
@@ -157,6 +157,17 @@ def test_vibration_reduction_db_exact_values():
     assert np.isnan(f_peak)
     with pytest.raises(ValueError, match="mode_freqs_hz"):
         vibration_reduction_db(freqs, psd_open, psd_closed, jnp.array([-1.0]))
+    # Bands are checked by name: a negative or NaN band gave NaN or no bins, a string and an
+    # array of centres failed deep in JAX.
+    for call, match in (
+        (lambda: band_mask(freqs, 16.0, -0.1), r"rel_band must be finite and > 0; got -0.1"),
+        (lambda: band_mask(freqs, float("nan")), r"f0 must be finite and > 0 \(Hz\); got nan"),
+        (lambda: band_peak(freqs, psd_open, jnp.array([16.0, 30.0])), r"f0 must be a scalar \(Hz\); got shape \(2,\)"),
+        (lambda: vibration_reduction_db(freqs, psd_open, psd_closed, [16.0], rel_band="0.1"), "rel_band must be a real number; got '0.1'"),
+        (lambda: vibration_reduction_db(freqs, psd_open, psd_closed, "16"), "mode_freqs_hz must be a real number or an array of real numbers; got '16'"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            call()
 
 
 def test_vibration_reduction_db_on_welch_outputs():

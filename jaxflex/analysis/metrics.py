@@ -11,7 +11,6 @@ set shapes (``final_fraction``, ``times_s``) are static Python values; ``dt`` an
 
 from __future__ import annotations
 
-import math
 from functools import partial
 from typing import Any, NamedTuple, Sequence
 
@@ -82,13 +81,12 @@ def settling_time(s: ArrayLike, dt: ArrayLike, *, band: float = 0.02, final_frac
     s = _as_signal(s)
     dt = _as_dt(dt, s.dtype)
     n_t = s.shape[0]
-    if isinstance(final_fraction, jax.core.Tracer) or not isinstance(final_fraction, (int, float, np.floating)):
+    if isinstance(final_fraction, (jax.core.Tracer, bool)) or not isinstance(final_fraction, (int, float, np.floating)):
         raise ValueError(f"final_fraction must be a static Python float in (0, 1]; got {final_fraction!r}")
     if not 0 < final_fraction <= 1:
         raise ValueError(f"final_fraction must be in (0, 1]; got {final_fraction}")
     if is_concrete(band):
-        if jnp.ndim(band) != 0 or not (math.isfinite(float(band)) and float(band) > 0):
-            raise ValueError(f"band must be a finite scalar > 0; got {band}")
+        check_finite_scalar("band", band, positive=True)
     n_final = max(1, int(round(final_fraction * n_t)))
     return _settling_time(s, dt, jnp.asarray(band, s.dtype), n_final)
 

@@ -14,7 +14,6 @@ static Python values; ``x`` and ``fs`` may be traced.
 
 from __future__ import annotations
 
-import math
 from functools import partial
 from typing import Any, NamedTuple, Union
 
@@ -259,6 +258,15 @@ def _welch(
     return freqs, psd
 
 
+def _check_band(f0: ArrayLike | None, rel_band: Any) -> None:
+    """A concrete centre ``f0`` (a scalar, finite and > 0, in Hz) and ``rel_band`` (finite and
+    > 0), by name; traced ones pass."""
+    if is_concrete(rel_band):
+        check_finite_scalar("rel_band", rel_band, positive=True)
+    if f0 is not None and is_concrete(f0):
+        check_finite_scalar("f0", f0, positive=True, unit="Hz")
+
+
 def band_mask(freqs: ArrayLike, f0: ArrayLike, rel_band: float = 0.15) -> jax.Array:
     """Bins inside the band ``|f - f0| <= rel_band * f0``.
 
@@ -270,6 +278,7 @@ def band_mask(freqs: ArrayLike, f0: ArrayLike, rel_band: float = 0.15) -> jax.Ar
     Returns:
       ``[F]`` bool.
     """
+    _check_band(f0, rel_band)
     freqs = jnp.asarray(freqs)
     f0 = jnp.asarray(f0)
     return jnp.abs(freqs - f0) <= rel_band * f0
@@ -289,6 +298,7 @@ def band_peak(freqs: ArrayLike, psd: ArrayLike, f0: ArrayLike, rel_band: float =
       band) and its int index into ``freqs`` (0 when no bin lies in the band). Ties go
       to the lowest frequency.
     """
+    _check_band(f0, rel_band)
     freqs = jnp.asarray(freqs)
     psd = jnp.asarray(psd)
     if freqs.ndim != 1 or psd.shape != freqs.shape:
@@ -337,9 +347,9 @@ def vibration_reduction_db(
         raise ValueError(
             f"psd_open and psd_closed must have the same shape [F]; got {psd_open.shape} and {psd_closed.shape}"
         )
-    if is_concrete(rel_band):
-        if not (math.isfinite(float(rel_band)) and float(rel_band) > 0):
-            raise ValueError(f"rel_band must be finite and > 0; got {rel_band}")
+    _check_band(None, rel_band)
+    if is_concrete(mode_freqs_hz):
+        checks.real_array("mode_freqs_hz", mode_freqs_hz)
     mode_freqs_hz = jnp.atleast_1d(jnp.asarray(mode_freqs_hz))
     if mode_freqs_hz.ndim != 1:
         raise ValueError(f"mode_freqs_hz must have shape [n_modes]; got {mode_freqs_hz.shape}")
