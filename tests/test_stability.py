@@ -362,6 +362,23 @@ def test_the_matrices_check_their_gain_and_delay(plant):
     assert radii[1] > 1  # the 10-sample loop is unstable when its history holds the delay
 
 
+def test_grids_and_root_counts_name_bad_values(plant):
+    """unstable_root_count took NaN delays (the open-loop count) and strings, and the grids
+    failed in NumPy on an empty delay list or a gain that is not a number."""
+    result = st.critical_delays(plant, PAPER_K)
+    dplant = discretize(plant, 1e-3, "zoh")
+    for call, match in (
+        (lambda: st.unstable_root_count(result, [float("nan")]), r"tau_s must be in \(0, tau_max_s = 0.05\] s"),
+        (lambda: st.unstable_root_count(result, "0.01"), "tau_s must be a real number or an array of real numbers; got '0.01'"),
+        (lambda: st.unstable_root_count(result, []), "tau_s must hold at least one delay"),
+        (lambda: st.sampled_radius_grid(dplant, [PAPER_K], []), r"k_values and delay_steps must be non-empty 1-D arrays; got shapes \(1,\), \(0,\)"),
+        (lambda: st.stability_chart(plant, ["a"], [5]), r"k_values must be a real number or an array of real numbers; got \['a'\]"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            call()
+    assert st.unstable_root_count(result, [0.004]).tolist() == [0]
+
+
 def test_each_analysis_refuses_the_other_kind_of_plant(plant):
     """A sampled plant given to the continuous-time analyses was read as if ``Ad`` were ``A``:
     critical_delays, crossing_frequencies, characteristic_polynomials, delta and

@@ -467,8 +467,10 @@ def unstable_root_count(result: CriticalDelays, tau_s: ArrayLike) -> np.ndarray:
       result: :func:`critical_delays` output.
       tau_s: delays (s), any shape, each <= ``result.tau_max_s``.
     """
-    tau = np.asarray(tau_s, np.float64)
-    if np.any(tau > result.tau_max_s * (1 + 1e-12)) or np.any(tau <= 0):
+    tau = checks.real_array("tau_s", tau_s).astype(np.float64)
+    if tau.size == 0:
+        raise ValueError("tau_s must hold at least one delay (s); got an empty array")
+    if not np.all(np.isfinite(tau)) or np.any(tau > result.tau_max_s * (1 + 1e-12)) or np.any(tau <= 0):
         raise ValueError(f"tau_s must be in (0, tau_max_s = {result.tau_max_s:g}] s; got range [{tau.min():g}, {tau.max():g}]")
     count = np.full(tau.shape, result.n_unstable_open_loop, np.int64)
     for cr in result.crossings:
@@ -728,10 +730,12 @@ def sampled_radius_grid(plant: DiscretePlant, k_values: ArrayLike, delay_steps: 
     """[n_tau, n_k] sampled spectral radii: one jitted ``vmap(vmap(...))`` over delays and gains
     (every delay padded to the longest history, so there is one compilation)."""
     check_sampled(plant)
-    delay_steps = np.asarray(delay_steps)
+    delay_steps, k_values = checks.real_array("delay_steps", delay_steps), checks.real_array("k_values", k_values)
+    if k_values.ndim != 1 or delay_steps.ndim != 1 or k_values.size < 1 or delay_steps.size < 1:
+        raise ValueError(f"k_values and delay_steps must be non-empty 1-D arrays; got shapes {k_values.shape}, {delay_steps.shape}")
     for d in delay_steps.tolist():
         _check_delay_steps(d)
-    for kv in np.asarray(k_values).tolist():
+    for kv in k_values.tolist():
         check_gain(kv)
     dtype = plant.Ad.dtype
     v = jnp.asarray(structural_directions(plant), dtype)
@@ -788,8 +792,8 @@ def stability_chart(
       continuous: also compute the continuous loop's rightmost root.
     """
     dplant = discretize(plant, dt, method)
-    k_values = np.asarray(k_values, np.float64)
-    delay_steps = np.asarray(delay_steps)
+    k_values = checks.real_array("k_values", k_values).astype(np.float64)
+    delay_steps = checks.real_array("delay_steps", delay_steps)
     if k_values.ndim != 1 or delay_steps.ndim != 1 or k_values.size < 1 or delay_steps.size < 1:
         raise ValueError(f"k_values and delay_steps must be non-empty 1-D arrays; got shapes {k_values.shape}, {delay_steps.shape}")
     tau = delay_steps * float(dt)
