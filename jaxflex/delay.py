@@ -72,9 +72,14 @@ def whole_samples(d: ArrayLike) -> ArrayLike:
     return xp.abs(d - xp.round(d)) <= WHOLE_SAMPLE_RTOL * xp.maximum(1.0, d)
 
 
+MAX_CAPACITY = 1_000_000
+"""The longest delay buffer, in samples (1000 s at 1 kHz): a larger one asked for terabytes
+and failed in the allocator, naming nothing."""
+
+
 def check_capacity(capacity: int) -> int:
     """The capacity sets an array shape, so it must be an integer >= 1 (returned as an int)."""
-    return checks.integer("capacity", capacity, unit="samples")
+    return checks.integer("capacity", capacity, unit="samples", high=MAX_CAPACITY)
 
 
 def delay_init(y0: ArrayLike, capacity: int) -> DelayState:

@@ -222,8 +222,8 @@ def initial_condition(x0: ArrayLike, steps: int, dtype=None) -> Scenario:
       dtype: floating dtype of the arrays; default: that of a floating ``x0``, else JAX's
         default float.
     """
-    if is_concrete(x0):
-        checks.real_array("x0", x0)
+    if is_concrete(x0) and not np.all(np.isfinite(checks.real_array("x0", x0))):
+        raise ValueError(f"x0 must be finite; got {np.asarray(x0).tolist()}")
     x0 = jnp.asarray(x0)
     if dtype is not None or not jnp.issubdtype(x0.dtype, jnp.floating):  # an int32 scenario would only be refused by rollout
         x0 = x0.astype(checks.float_dtype("dtype", dtype))

@@ -167,6 +167,9 @@ def test_samples_at():
         samples_at(s, dt, (1.0051,))
     with pytest.raises(ValueError, match=within + r" .*got \[-0.0051\]"):
         samples_at(s, dt, (-0.0051,))
+    for bad in ("0.5", ["0.5"], [True]):  # a string was read character by character
+        with pytest.raises(ValueError, match=r"times_s must be a static sequence of floats \(s\)"):
+            samples_at(s, dt, bad)
     # Traced dt: same values, NaN (not an error) outside the record.
     got = jax.jit(lambda s, dt: samples_at(s, dt, (0.25, 2.0)))(s, dt)
     np.testing.assert_array_equal(got[:1], [50.0])

@@ -100,6 +100,11 @@ def test_welch_whole_record_and_settings():
     assert PSDSettings(detrend=False).to_dict()["detrend"] is None
     with pytest.raises(ValueError, match="not both"):
         welch(x, FS, nperseg=64, settings=s)
+    with pytest.raises(ValueError, match=r"settings must be a PSDSettings .*; got dict"):
+        welch(x, FS, settings={"nperseg": 128})  # failed unpacking the dict's keys
+    for dtype, shown in ((jnp.int32, "int32"), ("foo", "'foo'")):  # an int32 window was a float one
+        with pytest.raises(ValueError, match=rf"dtype must be a floating dtype \(jnp.float32, jnp.float64\); got {shown}"):
+            get_window("hann", 8, dtype)
 
 
 def test_sinusoid_plus_noise_matches_scipy_and_peaks_at_tone():

@@ -194,6 +194,8 @@ def test_sample_scenarios_and_initial_condition_name_bad_inputs():
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(legacy)))
     with pytest.raises(ValueError, match=r"x0 must be a real number or an array of real numbers; got 'abc'"):
         initial_condition("abc", 10)
+    with pytest.raises(ValueError, match=r"x0 must be finite; got \[nan, 0.0"):
+        initial_condition([float("nan")] + [0.0] * 5, 10)  # refused only later, by rollout
     with pytest.raises(ValueError, match=r"dtype must be a floating dtype \(jnp.float32, jnp.float64\); got int32"):
         initial_condition([0.0] * 6, 10, dtype=jnp.int32)
     sc = initial_condition([0, 1, 0, 0, 0, 0], 10)

@@ -246,6 +246,8 @@ def samples_at(s: ArrayLike, dt: ArrayLike, times_s: Sequence[float]) -> jax.Arr
     s = _as_signal(s)
     n_t = s.shape[0]
     try:
+        if isinstance(times_s, (str, bytes)) or any(isinstance(t, (str, bytes, bool)) for t in times_s):
+            raise TypeError("not numbers")
         times = np.asarray([float(t) for t in times_s], dtype=np.float64)
     except (TypeError, jax.errors.ConcretizationTypeError) as err:
         raise ValueError(f"times_s must be a static sequence of floats (s); got {times_s!r}") from err

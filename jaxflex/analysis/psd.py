@@ -115,7 +115,7 @@ def get_window(window: str, nperseg: int, dtype: Any = None) -> jax.Array:
     if not isinstance(window, str) or window not in _COSINE_COEFFS:
         raise ValueError(f"window must be one of {WINDOWS}; got {window!r}")
     nperseg = checks.integer("nperseg", nperseg)
-    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    dtype = jnp.result_type(float) if dtype is None else checks.float_dtype("dtype", dtype)
     return _get_window(window, nperseg, dtype)
 
 
@@ -217,6 +217,7 @@ def welch(
         that is not finite and > 0.
     """
     if settings is not None:
+        checks.instance("settings", settings, PSDSettings, "build one with PSDSettings(window, nperseg, noverlap, detrend)")
         if (window, nperseg, noverlap, detrend) != ("hann", 256, None, "constant"):
             raise ValueError("pass either settings= or window/nperseg/noverlap/detrend keywords, not both")
         window, nperseg, noverlap, detrend = settings
