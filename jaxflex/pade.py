@@ -242,6 +242,8 @@ def pade_state_space(tau_s: ArrayLike, order: int) -> PadeSS:
       of ``tau_s`` (float64 for a Python float under ``jax_enable_x64``).
     """
     A1, B1, C1, D1 = _unit_realisation(check_order(order))
+    if is_concrete(tau_s):
+        checks.real_array("tau_s", tau_s, scalar=True)
     tau = jnp.asarray(tau_s)
     if tau.ndim != 0:
         raise ValueError(f"tau_s must be a scalar; got shape {tau.shape}")
@@ -300,6 +302,7 @@ def discretize_pade(ss: PadeSS, dt: ArrayLike, hold: str = "zoh") -> PadeDiscret
       dt: sample time (s), finite and > 0.
       hold: ``"zoh"`` or ``"foh"``.
     """
+    checks.instance("ss", ss, PadeSS, "build one with pade_state_space(tau_s, order)")
     return _sample(ss, dt, hold)[0]
 
 
@@ -323,13 +326,15 @@ def sampled_delay(tau_s: ArrayLike, order: int, dt: ArrayLike, u0: jax.Array, ho
       tau_s: shape () delay (s), > 0; may be traced.
       order: N (Python int >= 1).
       dt: sample time (s).
-      u0: [1] input before t = 0.
+      u0: [1] input before t = 0 ([1, B] for a batch of B lines, as a batched rollout's).
       hold: ``"foh"`` or ``"zoh"`` (see ``discretize_pade``).
 
     Returns:
       (PadeDiscrete, xi0 [N]).
     """
     ss = pade_state_space(tau_s, order)
+    if jnp.ndim(u0) not in (1, 2) or jnp.shape(u0)[0] != 1:
+        raise ValueError(f"u0 must have shape (1,), or (1, B) for a batch (the input before t = 0); got shape {jnp.shape(u0)}")
     filt, g2 = _sample(ss, dt, hold)
     u0 = jnp.asarray(u0, ss.A.dtype)
     return filt, steady_state(ss, u0) - g2 @ u0

@@ -782,3 +782,9 @@ def test_input_scalings_must_be_positive(field, value):
     sign-flipped input) are refused by name, like a non-finite one."""
     with pytest.raises(ValueError, match=rf"{field} must be finite and > 0"):
         fuzzy().check(fuzzy_params(**{field: value}))
+
+
+def test_surface_names_parameters_of_the_wrong_kind():
+    """A dict of gains failed inside the surface with an AttributeError."""
+    with pytest.raises(ValueError, match=r"params must be a FuzzyParams \(k1, k2, k3, angle_centres, velocity_centres, torque_centres\); got dict"):
+        fuzzy_surface({"k1": 1.0}, 0.1, 0.2)

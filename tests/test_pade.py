@@ -215,6 +215,15 @@ def test_bad_arguments():
         pade.discretize_pade(pade.pade_state_space(TAU, 2), 0.0)
     with pytest.raises(ValueError, match="tau_s must be a scalar"):
         pade.pade_state_space(jnp.ones(2), 2)
+    # named, where they failed inside JAX or with an AttributeError
+    with pytest.raises(ValueError, match="tau_s must be a real number; got '0.005'"):
+        pade.pade_state_space("0.005", 2)
+    with pytest.raises(ValueError, match=r"ss must be a PadeSS \(build one with pade_state_space\(tau_s, order\)\); got dict"):
+        pade.discretize_pade({"A": 1.0}, DT)
+    for u0 in (jnp.zeros(3), jnp.zeros(()), jnp.zeros((2, 4))):
+        with pytest.raises(ValueError, match=r"u0 must have shape \(1,\), or \(1, B\) for a batch"):
+            pade.sampled_delay(TAU, 2, DT, u0)
+    assert pade.sampled_delay(TAU, 2, DT, jnp.zeros((1, 4)))[1].shape == (2, 4)
 
 
 def test_delays_far_below_the_sample_time_stay_finite_and_bad_delays_are_refused():

@@ -595,6 +595,7 @@ def fuzzy_surface(
     _check_defuzz(defuzz)
     t = check_temperature(temperature)
     idx = _rule_indices(rules, set_names)
+    check_params_type(params, FuzzyParams)
     _check_centres(params, len(tuple(set_names)))
     return _surface(params, e, e_dot, idx, defuzz, t)
 
