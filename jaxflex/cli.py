@@ -261,7 +261,7 @@ def _remove_if_empty(folder: str) -> None:
     checkpoint to resume from, finished results) is kept. The run lock counts for none."""
     if any(name != fileio.RUN_LOCK for _, _, files in os.walk(folder) for name in files):
         return
-    with contextlib.suppress(FileNotFoundError):
+    with contextlib.suppress(OSError):  # none there, or no folder at all
         os.remove(os.path.join(folder, fileio.RUN_LOCK))
     for root, _, _ in sorted(os.walk(folder), key=lambda entry: -len(entry[0])):
         try:

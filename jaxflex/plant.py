@@ -184,6 +184,9 @@ def discretize(plant: LinearPlant, dt: ArrayLike = 1e-3, method: str = "rk4", *,
         check_rk4_step(plant, dt)
     sampled = _discretize(plant, dt, method)
     if not isinstance(dt, jax.core.Tracer):  # a traced dt (jit, vmap or grad over it) makes traced maps: nothing to check
+        # A concrete dt stays concrete, even for a traced plant (grad over the arm's
+        # constants): paper_scenario and rollout read and check it.
+        sampled = sampled._replace(dt=np.asarray(dt, plant.A.dtype))
         hint = " or method = 'zoh'" if method == "rk4" else ""
         _check_finite_maps(sampled, ("Ad", "Bd", "Ed"), f"at dt = {float(dt):g} s, method = {method!r} (use a smaller dt{hint})")
     return sampled

@@ -197,11 +197,12 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     with pytest.raises(KeyboardInterrupt):
         run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False, on_chunk=interrupt)
     assert not (tmp_path / "cut" / "summary.json").exists()
-    # resuming a folder without a Monte Carlo run is refused before anything is written
+    # resuming a folder without a Monte Carlo run is refused before anything is written (but
+    # the empty run lock, taken before the folder is checked)
     (tmp_path / "tune").mkdir()
     with pytest.raises(ValueError, match="holds no Monte Carlo run"):
         run_montecarlo(config, tmp_path / "tune", resume=True, progress=False)
-    assert not list((tmp_path / "tune").iterdir())
+    assert [p.name for p in (tmp_path / "tune").iterdir()] == [".jaxflex-run.lock"]
     # a damaged or foreign chunk is named, with what to do, not met with a zip or index error
     chunk = tmp_path / "cut" / "chunks" / "chunk_000003.npz"
     good = chunk.read_bytes()

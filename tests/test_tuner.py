@@ -340,7 +340,7 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
         raise AssertionError("Problem built before the checkpoint's configuration was checked")
 
     monkeypatch.setattr(tuning.tuner, "Problem", no_problem)
-    with pytest.raises(ValueError, match=r"another configuration \(changed: controller;"):
+    with pytest.raises(ValueError, match=r"another configuration \(changed: controller: 'dfs' -> 'fuzzy';"):
         tune(dataclasses.replace(cfg, controller="fuzzy"), tmp_path / "cut", resume=True, progress=False)
     with pytest.raises(ValueError, match="pass --resume"):
         tune(cfg, tmp_path / "cut", progress=False)
@@ -569,7 +569,7 @@ def test_cli_tune_says_when_no_update_helped(monkeypatch, tmp_path, capsys, best
 
     objective = {"train": {"before": 1.0, "after": 1.0}, "heldout": {"before": 1.8, "after": 1.8}}
     summary = {"controller": "fuzzy", "params": {"k1": 1.0}, "paper_params": {"k1": 1.0}, "objective": objective, "steps_run": 5, "best_step": best_step, "stopped_early": False}
-    monkeypatch.setattr(run, "run_tune", lambda config, out, resume, progress: summary)
+    monkeypatch.setattr(run, "run_tune", lambda config, out, resume, progress, on_step: summary)
     assert cli.main(["tune", "--controller", "fuzzy", "--scenarios", "7", "--steps", "5", "--lr", "0.01", "--out", str(tmp_path), "--no-progress"]) == 0
     note = "note: no update improved the held-out objective, so the starting gains are kept; more training scenarios (now 7) or a lower learning_rate (now 0.01) may help"
     assert (note in capsys.readouterr().err) == (best_step == 0)
