@@ -347,7 +347,7 @@ def _peak_abs(peak: jax.Array, values: tuple[jax.Array, ...]) -> jax.Array:
     clearing the sign bits and taking integer maxima (one ``and`` and one ``max`` each) gives
     the same peak, NaN if any operand is NaN. The derivative is the exact chain's.
     """
-    itype = {4: jnp.int32, 8: jnp.int64}[peak.dtype.itemsize]
+    itype = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[peak.dtype.itemsize]
     magnitude = jnp.iinfo(itype).max  # every bit but the sign
     bits = jax.lax.bitcast_convert_type(peak, itype)
     for v in values:

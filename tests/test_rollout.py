@@ -575,7 +575,7 @@ def test_running_metrics_report_divergence(plant2):
     assert jf.rollout(plant2, pd(), PDParams(1.0, 0.1), sc, output="metrics").diverged.item() is False
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.float32, jnp.float64])
 def test_running_peaks_on_bits_equal_jnp_maximum(dtype):
     """The running peaks (``peak_tip_m``, ``peak_abs_state``) take integer maxima of the
     magnitudes' bits: NumPy's ``maximum`` of ``abs`` over signed zeros, subnormals, the largest
