@@ -210,7 +210,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = getattr(args, "out", None)
     new_out = bool(out) and not os.path.lexists(out)
     handles_signals = threading.current_thread() is threading.main_thread()  # signal.signal works there only
-    previous = {signum: signal.signal(signum, _on_signal) for signum in (signal.SIGINT, signal.SIGTERM)} if handles_signals else {}
+    # SIGINT only where Python's default handler has it: a process started with it ignored
+    # (nohup, a background job) keeps ignoring it.
+    signums = [s for s in (signal.SIGINT, signal.SIGTERM) if s != signal.SIGINT or signal.getsignal(s) is signal.default_int_handler]
+    previous = {signum: signal.signal(signum, _on_signal) for signum in signums} if handles_signals else {}
     _pending_signal.clear()
     try:
         status = _run(args)

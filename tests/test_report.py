@@ -503,6 +503,7 @@ def test_cli_a_signal_dropped_in_a_gc_callback_still_ends_the_run(tmp_path, caps
 
     ignored = []
     before = signal.signal(signal.SIGTERM, lambda *args: ignored.append(args))  # stands in for the default, which ends pytest
+    before_int = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (a background job ignores it)
     try:
         monkeypatch.setattr(tuning.run, "run_tune", loop_of("on_step"))
         assert cli.main(["tune", "--out", str(tmp_path / "t"), "--no-progress"]) == 143
@@ -513,8 +514,12 @@ def test_cli_a_signal_dropped_in_a_gc_callback_still_ends_the_run(tmp_path, caps
         assert cli.main(["reproduce", "--out", str(tmp_path / "r")]) == 130
         assert "jaxflex reproduce: interrupted" in capsys.readouterr().err
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # nohup: Ctrl-C stays ignored
+        assert cli.main(["reproduce", "--out", str(tmp_path / "r")]) == 0
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGTERM, before)
+        signal.signal(signal.SIGINT, before_int)
     assert not ignored
 
 
