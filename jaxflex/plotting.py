@@ -72,7 +72,16 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
       diverged: run name -> whether the run diverged.
       title: figure title.
       style_of: run name -> the run (controller) whose line style it takes.
+
+    Raises:
+      ValueError: for no signals, or a run that lacks one of them (naming both).
     """
+    if not signals:
+        raise ValueError("signals must name at least one (signal, y-axis label) pair")
+    for run, sig in runs.items():
+        missing = [name for name, _ in signals if name not in sig]
+        if missing:
+            raise ValueError(f"runs[{run!r}] lacks signal(s) {missing}; it has {sorted(sig)}")
     fig, axes = plt.subplots(len(signals), 1, figsize=(7.5, 2.6 * len(signals)), sharex=True, squeeze=False)
     styles = _styles(list(runs), style_of)
     for ax, (name, ylabel) in zip(axes[:, 0], signals):
@@ -235,8 +244,10 @@ def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title:
     three decades or more (the ISE and effort of runs near instability) get log-spaced bins on
     a log axis: linear bins put nearly every run into the first. Values all equal get a bin
     around that value (matplotlib's default spans it +-0.5, so 2e-3 m read as 0), and a panel
-    with no finite value says so."""
+    with no finite value says so. No metric at all is refused (ValueError)."""
     names = list(data)
+    if not names:
+        raise ValueError("data must hold at least one metric to draw")
     cols = 3
     rows = -(-len(names) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(11, 3.0 * rows), squeeze=False)

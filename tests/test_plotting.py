@@ -157,3 +157,15 @@ def test_identification_legend_leaves_the_record_visible():
     legend = ax.get_legend().get_window_extent()
     points = ax.transData.transform(np.stack([t[::10], hub[::10]], axis=1))
     assert not any(legend.contains(*p) for p in points)
+
+
+def test_figures_name_empty_or_missing_data():
+    """An empty histogram set failed in matplotlib's gridspec, and a run without a signal with
+    a bare KeyError."""
+    with pytest.raises(ValueError, match="data must hold at least one metric"):
+        plotting.histograms({}, {}, "none")
+    t = np.arange(3.0)
+    with pytest.raises(ValueError, match=r"runs\['dfs'\] lacks signal\(s\) \['tip'\]; it has \['hub'\]"):
+        plotting.responses(t, {"dfs": {"hub": t}}, [("tip", "m")], {}, "x")
+    with pytest.raises(ValueError, match="signals must name at least one"):
+        plotting.responses(t, {"dfs": {"hub": t}}, [], {}, "x")
