@@ -633,6 +633,25 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     assert (out / "fig_tuned_response.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_reproduce_with_dfs_fuzzy_params_compares_the_same_loop(tmp_path):
+    """The paper runs no DFS + fuzzy loop: tuned dfs+fuzzy gains were set beside the paper's
+    fuzzy controller alone, so the paper's own gains, passed as tuned, read as a different
+    run. The paper row is now the paper's gains in the DFS + fuzzy loop, and equals them."""
+    tuned = tmp_path / "tuned.json"
+    tuned.write_text(json.dumps({"controller": "dfs+fuzzy", "params": {"k": 55.0, "tau_s": 0.005, "k1": 1.02, "k2": 0.3, "k3": 1.0}}))
+    out = tmp_path / "o"
+    assert cli.main(["reproduce", "--out", str(out), "--params", str(tuned)]) == 0
+    res = json.loads((out / "results.json").read_text())
+    ours, paper = res["tuned"]["run"], res["tuned"]["paper_run"]
+    assert res["tuned"]["paper_params"] == {"k": 55.0, "tau_s": 0.005, "k1": 1.02, "k2": 0.3, "k3": 1.0}
+    for signal in ("q1", "tip_deflection_m"):
+        for key, value in paper[signal].items():
+            np.testing.assert_allclose(ours[signal][key], value, rtol=1e-12, err_msg=f"{signal}.{key}")
+    assert paper["tip_deflection_m"]["ise"] != res["runs"]["fuzzy"]["tip_deflection_m"]["ise"]  # another loop than fuzzy alone
+    rows = [line for line in (out / "report.md").read_text().splitlines() if line.startswith(("| paper | k = 55", "| tuned | k = 55"))]
+    assert len(rows) == 2 and rows[0].removeprefix("| paper") == rows[1].removeprefix("| tuned"), rows
+
+
 def test_reproduce_says_when_the_tuned_gains_diverge(tmp_path, capsys):
     """Diverging tuned gains were shown as a row of n/a, with nothing on the console."""
     tuned = tmp_path / "tuned.json"
