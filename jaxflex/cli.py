@@ -305,13 +305,15 @@ def _run(args: argparse.Namespace) -> int:
     if hasattr(args, "out"):
         _check_out(args.out)
     if args.command == "reproduce":
-        from jaxflex.report import reproduce
+        from jaxflex.beam import BeamParams, check_n_modes
+        from jaxflex.report import DT, reproduce
 
         start = time.perf_counter()
 
         def progress(msg: str) -> None:
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
+        print(_model_line(BeamParams(), check_n_modes(args.modes), DT), file=sys.stderr)
         results = reproduce(args.out, n_modes=args.modes, progress=progress, params_file=args.params)
         print(_reproduce_summary(results))
         tuned = results.get("tuned")
@@ -375,6 +377,11 @@ def _reproduce_summary(results: dict) -> str:
     )
 
 
+def _first_modes(count: int) -> str:
+    """``"mode 1"`` or ``"modes 1-N"``."""
+    return "mode 1" if count == 1 else f"modes 1-{count}"
+
+
 def _model_line(arm, n_modes: int, dt: float) -> str:
     """The model a command is about to run, so that a unit slip in ``[beam]`` shows before
     the run: its flexible frequencies, their damping (a damping_ratio of 1 meant as 1 % is
@@ -393,7 +400,7 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     omega = 2 * np.pi * freqs
     ratios = ", ".join(f"{z:.4g}" for z in alpha / (2 * omega) + beta * omega / 2)
     given = f"damping_ratio = {float(arm.damping_ratio):g} of the 2-mode model" if arm.rayleigh_alpha is None else f"Rayleigh alpha = {alpha:g} 1/s, beta = {beta:g} s"
-    damping = f"damping ratio {ratios} in flexible mode 1 ({given})" if n_modes == 1 else f"damping ratios {ratios} in flexible modes 1-{n_modes} ({given})"
+    damping = f"damping ratio{'s' if n_modes > 1 else ''} {ratios} in flexible {_first_modes(n_modes)} ({given})"
     line = f"model: {n_modes} mode(s) at {', '.join(f'{f:.4g}' for f in freqs)} Hz with {damping}, sampled every {dt:g} s (Nyquist {nyquist:.4g} Hz)"
     above = freqs[freqs > nyquist]
     if above.size:
@@ -550,7 +557,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     if result.measured_damping.size:
         shown = ", ".join(f"{z:.4g}" for z in result.after_damping)
         measured = ", ".join(f"{z:.4g}" for z in result.measured_damping)
-        print(f"damping ratios: measured {measured}; model {shown} in modes 1-{result.measured_hz.size}")
+        print(f"damping ratio{'s' if result.measured_damping.size > 1 else ''}: measured {measured}; model {shown} in {_first_modes(result.measured_hz.size)}")
     loose = [name for name, sensitivity in zip(result.fit, result.sensitivity) if sensitivity > 10]
     if loose:
         print(f"note: the measured frequencies determine {', '.join(loose)} poorly (over 10 % per 1 % error in them): fit fewer fields, or measure more modes", file=sys.stderr)

@@ -176,6 +176,7 @@ def test_cli_writes_a_config_the_other_commands_read(tmp_path, capsys):
     code = cli.main(["calibrate", "--freqs", *map(str, measured), "--damping", "0.015", "0.025", "--out", str(out)])
     printed = capsys.readouterr().out
     assert code == 0 and "youngs_modulus_pa: 7.1e+10 -> 6e+10" in printed
+    assert "damping ratios: measured 0.015, 0.025; model 0.015, 0.025 in modes 1-2\n" in printed
     assert sorted(os.listdir(out)) == ["calibrated.toml", "calibration.json", "calibration.png"]
     summary = json.loads((out / "calibration.json").read_text())
     np.testing.assert_allclose(summary["model_after_hz"], measured, rtol=1e-9)
@@ -184,6 +185,11 @@ def test_cli_writes_a_config_the_other_commands_read(tmp_path, capsys):
     _, arm, n_modes = cli._arm_config(str(out / "calibrated.toml"))
     np.testing.assert_allclose(natural_frequencies_hz(arm, n_modes), measured, rtol=1e-9)
     assert TuneConfig.from_mapping(fileio.read_toml(out / "calibrated.toml")).beam == arm
+
+
+def test_cli_names_one_damped_mode_as_mode_1(tmp_path, capsys):
+    assert cli.main(["calibrate", "--freqs", "14", "--damping", "0.012", "--out", str(tmp_path / "cal")]) == 0
+    assert "damping ratio: measured 0.012; model 0.012 in mode 1\n" in capsys.readouterr().out  # was "ratios ... in modes 1-1"
 
 
 def test_cli_names_options_in_its_errors(tmp_path, capsys):

@@ -618,7 +618,10 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     assert cli.main(["reproduce", "--out", str(out), "--params", str(tuned)]) == 0
     tuned_for = "another arm (length_m = 0.6), 3 modes (here 2), dt = 0.0005 s (here 0.001 s), method = 'zoh' (here 'rk4')"
     # said on the console too, not only in one sentence of report.md
-    assert f"note: {tuned} was tuned for {tuned_for}; its gains ran here on the paper's arm, 2 modes, RK4 at 1 ms" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    assert f"note: {tuned} was tuned for {tuned_for}; its gains ran here on the paper's arm, 2 modes, RK4 at 1 ms" in printed.out
+    # the model line the other commands print, with the damping each mode gets
+    assert "model: 2 mode(s) at 13.32, 36.47 Hz with damping ratios 0.01, 0.01 in flexible modes 1-2 (damping_ratio = 0.01 of the 2-mode model), sampled every 0.001 s" in printed.err
     res = json.loads((out / "results.json").read_text())
     ours, paper = res["tuned"]["run"], res["runs"]["dfs"]
     for signal in ("q1", "tip_deflection_m"):
