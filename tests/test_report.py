@@ -668,6 +668,22 @@ def test_reproduce_says_when_the_tuned_gains_diverge(tmp_path, capsys):
     assert re.search(r"\| paper \| k = 55, tau_s = 0.005 \| 0\.\d{3} s \| ", report)
 
 
+def test_report_says_by_estimator_where_dfs_is_ahead(reproduced):
+    """The paper's ordering (DFS ahead of fuzzy) is judged with the default estimator; the
+    sentence also says where each other estimator puts DFS ahead, at the paper's two modes."""
+    from jaxflex.report import _report_md
+
+    _, res = copy.deepcopy(reproduced)
+    tables = res["vibration_reduction_db_by_estimator"]
+    names = list(tables)
+    verdicts = ([90.0, 90.0], [80.0, 80.0]), ([90.0, 10.0], [80.0, 80.0]), ([10.0, 90.0], [80.0, 80.0]), ([10.0, 10.0, 99.0], [80.0, 80.0, 1.0])
+    for name, (dfs_db, fuzzy_db) in zip(names, verdicts):
+        tables[name] = {"dfs": dfs_db, "fuzzy": fuzzy_db}
+    res["vibration_reduction_db"] = tables[names[0]]
+    expected = f"agrees with jaxflex's default estimator. DFS is ahead, by estimator: {names[0]} at modes 1, 2; {names[1]} at mode 1; {names[2]} at mode 2; {names[3]} at no mode."
+    assert expected in _report_md(res)
+
+
 def test_report_tells_a_run_that_never_settled_and_a_third_mode(reproduced):
     """A settling time of +inf (still outside the band at the end) read n/a, as a diverged run
     does. A third model mode has no paper value and stays out of the paper's comparison."""
