@@ -258,6 +258,24 @@ def test_rk4_amplified_omega_is_the_fastest_amplified_mode_and_skips_growing_one
     assert rk4_amplified_omega(plant._replace(A=jnp.asarray([[10.0]])), 1e-3) is None
 
 
+def test_rk4_amplification_of_an_undamped_arm_is_found():
+    """An undamped mode's eigenvalues have real parts of round-off size, of either sign: the
+    one at +3e-15 was taken for a growing mode, and an RK4 step of 20 ms on the undamped arm,
+    which multiplies mode 2 by 14 each step, was accepted."""
+    from jaxflex.beam import natural_frequencies_hz
+    from jaxflex.plant import rk4_amplified_omega
+
+    undamped = BeamParams(damping_ratio=0.0)
+    omega = 2 * np.pi * np.asarray(natural_frequencies_hz(undamped, 2))
+    dt = 0.02
+    gain = np.abs(np.polyval([1 / 24, 1 / 6, 1 / 2, 1, 1], 1j * omega * dt))  # |R(i omega dt)|
+    assert gain[0] < 1 < gain[1]  # mode 1 (84 rad/s) held, mode 2 (229 rad/s) amplified
+    plant = make_plant(undamped, 2)
+    np.testing.assert_allclose(rk4_amplified_omega(plant, dt), omega[1], rtol=1e-9)
+    with pytest.raises(ValueError, match=r"method = 'rk4' with dt = 0.02 s is unstable for this arm: its mode at 36.47 Hz has omega dt = 4.58"):
+        discretize(plant, dt, "rk4")
+
+
 def test_measurement_and_performance_maps_read_the_documented_states():
     """x = [theta, q_1..q_n, theta_dot, q_dot...]: y = [theta, theta_dot]; z = [theta,
     sum_i phi_i(L) q_i, L theta + w(L)] with |phi_i(L)| = 2 (the normalisation)."""
