@@ -41,11 +41,25 @@ def test_linear_read_is_exact_at_whole_samples_and_interpolates_between():
     assert d32 < 5
     np.testing.assert_array_equal(delay.delay_read(state, d32, "nearest"), ys[-6])
     np.testing.assert_array_equal(delay.delay_read(state, 4.4, "nearest"), ys[-5])
-    # beyond the buffer the read is clamped to its oldest sample, whatever the interpolation
+    # beyond the buffer the read is clamped to its oldest sample, and below 0 to the newest,
+    # whatever the interpolation
     for interpolation in ("nearest", "linear", "cubic"):
         np.testing.assert_allclose(delay.delay_read(state, 6.7, interpolation), delay.delay_read(state, 6, interpolation), rtol=1e-14)
+        for d in (-0.5, -1.0, -7.0):
+            np.testing.assert_array_equal(delay.delay_read(state, d, interpolation), ys[-1])
     g = jax.grad(lambda d: delay.delay_read(state, d, "linear")[0])(2.25)
     np.testing.assert_allclose(g, ys[-4, 0] - ys[-3, 0], rtol=1e-14)
+
+
+def test_whole_samples_is_relative_to_the_delay():
+    """A float32 quotient tau / dt of a whole delay is off by round-off that grows with it
+    (0.5 s / 1 ms is 499.99997 samples, 3e-5 from 500): still whole, traced or concrete; half
+    a sample off is not."""
+    for tau, whole in ((0.005, True), (0.03, True), (0.5, True), (0.0305, False), (0.5005, False)):
+        d32 = jnp.float32(tau) / jnp.float32(1e-3)
+        assert bool(jax.jit(delay.whole_samples)(d32)) is whole, (tau, d32)
+        assert bool(delay.whole_samples(np.float32(tau) / np.float32(1e-3))) is whole, tau
+        assert bool(delay.whole_samples(tau / 1e-3)) is whole, tau
 
 
 @pytest.mark.parametrize("interpolation", ["linear", "cubic"])

@@ -201,6 +201,8 @@ def test_validation():
             dfs(DT, capacity=16, interpolation=interpolation).check(DFSParams(K, 0.0161))
     dfs(DT, capacity=16, approximation="pade").check(DFSParams(K, 0.5))  # no capacity limit
     dfs(DT, capacity=16, interpolation="cubic").check(DFSParams(K, 0.016))  # the capacity itself
+    assert 0.07 / 0.01 > 7  # 7.000000000000001: the capacity, to round-off
+    dfs(0.01, capacity=7, interpolation="linear").check(DFSParams(K, 0.07))
 
 
 def test_traced_tau_outside_the_buffer_is_not_clamped(jitted, plant2):

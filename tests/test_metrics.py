@@ -174,6 +174,10 @@ def test_samples_at():
     got = jax.jit(lambda s, dt: samples_at(s, dt, (0.25, 2.0)))(s, dt)
     np.testing.assert_array_equal(got[:1], [50.0])
     assert np.isnan(got[1])
+    # the traced bounds are the concrete ones, half a sample beyond each end
+    got = np.asarray(jax.jit(lambda s, dt: samples_at(s, dt, (1.0049, 1.0051, -0.0049, -0.0051)))(s, dt))
+    np.testing.assert_array_equal(got[[0, 2]], [200.0, 0.0])
+    assert np.isnan(got[1]) and np.isnan(got[3])
 
 
 def test_float32_preserved():

@@ -65,7 +65,7 @@ def test_poles_known_values():
     assert abs(np.imag(real3)) == 0.0
 
 
-@pytest.mark.parametrize("n", [1, 4, 8, 12, 20, 30])
+@pytest.mark.parametrize("n", [1, 4, 5, 7, 8, 12, 20, 30, 31])
 def test_poles_are_exact_to_float64(n):
     poles = pade._poles(n)
     assert poles.shape == (n,) and np.all(poles.real > 0)  # stable: roots of D in the open LHP

@@ -160,6 +160,9 @@ def test_vibration_reduction_db_exact_values():
     # A band with no bins gives NaN, not a silent read of bin 0.
     f_peak, _ = band_peak(jnp.array([0.0, 10.0, 20.0]), jnp.ones(3), 14.0, rel_band=0.1)
     assert np.isnan(f_peak)
+    # A band whose PSD is all 0 (a mode not excited) still gives a bin in the band, its lowest
+    f_peak, idx = band_peak(jnp.arange(10.0), jnp.zeros(10), 5.0, rel_band=0.3)
+    assert float(f_peak) == 4.0 and int(idx) == 4
     with pytest.raises(ValueError, match="mode_freqs_hz"):
         vibration_reduction_db(freqs, psd_open, psd_closed, jnp.array([-1.0]))
     # Bands are checked by name: a negative or NaN band gave NaN or no bins, a string and an

@@ -738,6 +738,32 @@ def test_objective_spec_refuses_bad_weights_and_levels_by_name():
     assert ObjectiveSpec(tip_ise=0.0, vibration=0.5, cvar_level=0.0, stability_weight=0.0).cvar_level == 0.0
 
 
+@pytest.mark.parametrize("name", ["dfs", "fuzzy", "dfs+fuzzy"])
+@pytest.mark.parametrize("delay", ["linear", "pade"])
+def test_transforms_round_trip_each_parameter(name, delay):
+    """to_physical(to_raw(p)) is p, parameter by parameter (distinct values, so a swap shows)."""
+    from tuning.transforms import tuned_controller
+
+    t = tuned_controller(name, delay=delay)
+    given = {"k": 41.0, "tau_s": 0.0073, "k1": 0.8, "k2": 0.45, "k3": 1.7}
+    params = t.from_named(given)
+    back = t.named(t.to_physical(t.to_raw(params)))
+    assert sorted(back) == sorted(t.named(params))
+    for key, value in back.items():
+        assert value == pytest.approx(given[key], rel=1e-12), key
+
+
+def test_reference_scales_are_batch_means_so_the_reference_gains_score_the_weights():
+    """Each term is divided by its batch mean under the paper's gains: those gains then score
+    the sum of the weights under "mean", and a term that is 0 in every scenario is floored."""
+    terms = objectives.Terms(*(jnp.asarray(v) for v in ([1.0, 2.0, 6.0], [0.0, 0.0, 0.0], [3.0, 5.0, 4.0], [1e-3, 2e-3, 0.0])))
+    scales = objectives.reference_scales(terms)
+    np.testing.assert_allclose([float(s) for s in scales], [3.0, np.finfo(np.float64).tiny, 4.0, 1e-3], rtol=1e-12)
+    spec = ObjectiveSpec(tip_ise=1.0, effort=0.5, vibration=2.0)
+    losses = objectives.scenario_losses(terms, scales, spec)
+    np.testing.assert_allclose(float(objectives.reduce_losses(losses, spec)), 3.5, rtol=1e-12)
+
+
 def test_dfs_transform_accepts_tau_at_both_ends():
     """tau in [dt, capacity dt] closed: both ends pass check_tau, and to_raw maps them to
     finite raw values (the fraction is clipped inside (0, 1)) that map back near the ends."""
