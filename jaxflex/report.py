@@ -73,6 +73,11 @@ def _run_metrics(traj, dt: float) -> dict[str, Any]:
     return out
 
 
+def _paper_gains(name: str) -> dict[str, float]:
+    """The paper's values of the parameters controller ``name`` uses, by name."""
+    return {key: PAPER_PARAMS[key] for key in PARAMETERS[name]}
+
+
 def format_value(v: Any, spec: str = ".4g") -> str:
     """``v`` formatted with ``spec``; ``n/a`` for a missing (diverged run) or non-finite value."""
     if v is None or (isinstance(v, float) and not np.isfinite(v)):
@@ -384,18 +389,19 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     if tuned is not None:
         say(f"simulating tuned {tuned.name}")
         ttraj = jax.block_until_ready(simulate(plant, tuned_controller, tuned_params, scenario))
-        if tuned.name in trajectories:  # the paper's own run of this controller
-            paper_traj = trajectories[tuned.name]
+        if tuned.name in runs:  # the paper's own run of this controller
+            paper_traj, paper_run = trajectories[tuned.name], runs[tuned.name]
         else:  # dfs+fuzzy, which the paper does not run: the paper's gains in the same loop
             say(f"simulating {plotting.LABELS[tuned.name]} with the paper's gains")
             controller, cparams = by_name(tuned.name, dt=DT)
             paper_traj = jax.block_until_ready(simulate(plant, controller, cparams, scenario))
+            paper_run = _run_metrics(paper_traj, DT)
         tuned_results = {
             "controller": tuned.name,
             "file": os.fspath(params_file),
             "params": tuned.named,
-            "paper_params": {name: PAPER_PARAMS[name] for name in PARAMETERS[tuned.name]},
-            "paper_run": runs[tuned.name] if tuned.name in runs else _run_metrics(paper_traj, DT),
+            "paper_params": _paper_gains(tuned.name),
+            "paper_run": paper_run,
             "beam": tuned.beam._asdict(),
             "tuned_for": tuned.differences(beam.BeamParams(), n_modes, DT, "rk4"),
             "run": _run_metrics(ttraj, DT),
@@ -438,7 +444,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
             "dtype": str(dtype),
         },
         "runs": runs,
-        "controllers": {"dfs": {name: PAPER_PARAMS[name] for name in PARAMETERS["dfs"]}, "fuzzy": {**{name: PAPER_PARAMS[name] for name in PARAMETERS["fuzzy"]}, "defuzz": "centroid"}},
+        "controllers": {"dfs": _paper_gains("dfs"), "fuzzy": {**_paper_gains("fuzzy"), "defuzz": "centroid"}},
         "vibration_reduction_db": by_estimator[next(iter(ESTIMATORS))],
         "vibration_reduction_db_by_estimator": by_estimator,
         "vibration_reduction_db_q1": reduction_q1,
