@@ -142,7 +142,8 @@ def check_plants(spec: "ScenarioSpec", params: beam.BeamParams, n_modes: int, me
 
 
 def horizon_steps(horizon_s: float, dt: float) -> int:
-    """Number of samples in ``horizon_s`` seconds at ``dt`` (both concrete, > 0).
+    """Number of samples in ``horizon_s`` seconds at ``dt`` (both concrete, > 0), rounded to
+    the nearest whole sample: a 1.004 s horizon at dt = 0.01 s runs 100 samples.
 
     Raises:
       ValueError: naming ``horizon_s`` or ``dt`` when it is not a finite number > 0 (a string
@@ -242,7 +243,8 @@ class ScenarioSpec:
     plant drawn around the nominal one.
 
     Attributes:
-      horizon_s: simulated time per scenario (s), > 0.
+      horizon_s: simulated time per scenario (s), > 0, rounded to the nearest whole number of
+        samples of ``dt`` (``steps``).
       dt: sample time (s), > 0.
       q0_std_m: standard deviation of each initial modal displacement q_i(0) (m).
       qdot0_std_m_s: standard deviation of each initial modal rate (m/s).

@@ -96,6 +96,21 @@ def test_paper_scenario_refuses_a_horizon_or_dt_that_is_not_a_number(name, value
         paper_scenario(make_plant(), **{name: value})
 
 
+@pytest.mark.parametrize("horizon_s, steps", [(1.004, 100), (1.006, 101), (0.006, 1), (3.0, 300)])
+def test_the_horizon_is_rounded_to_the_nearest_whole_sample(horizon_s, steps):
+    """The documented rounding at dt = 0.01 s: the scenario and the spec both run ``steps`` samples."""
+    from jaxflex import make_plant
+    from jaxflex.scenarios import paper_scenario
+
+    assert ScenarioSpec(horizon_s=horizon_s, dt=0.01).steps == steps
+    assert paper_scenario(make_plant(), horizon_s=horizon_s, dt=0.01).force.shape[0] == steps
+
+
+def test_a_horizon_under_half_a_sample_is_refused():
+    with pytest.raises(ValueError, match=r"horizon_s must cover at least one sample of dt = 0.01; got 0.004"):
+        ScenarioSpec(horizon_s=0.004, dt=0.01)
+
+
 def test_paper_scenario_of_a_traced_plant_needs_its_dt():
     """Under jit a sampled plant's dt is traced: the scenario took 1 ms for it, so a 2 ms
     plant ran twice the horizon asked for. It is refused unless dt is given, and then used."""
