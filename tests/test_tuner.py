@@ -888,3 +888,11 @@ def test_tuning_sharded_over_devices_equals_one_device(tmp_path):
     for name in history[1].dtype.names:  # every point's parameters, objectives and gradient norm
         np.testing.assert_allclose(history[2][name], history[1][name], rtol=1e-10, err_msg=name)
     assert np.all(np.diff(history[2]["k"]) != 0)  # each update moved the gains
+    assert runs[1]["devices_from_step"] == [{"from_step": 0, "devices": 1}] and runs[2]["devices_from_step"] == [{"from_step": 0, "devices": 2}]
+    # the 2-device run resumed on 1 device for one more update: tuned.json says which count took which steps
+    command = [sys.executable, "-m", "jaxflex.cli", "tune", "--config", str(config), "--x64", "--cpu-devices", "1", "--no-progress", "--resume", "--steps", "4", "--out", str(tmp_path / "d2")]
+    out = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
+    assert out.returncode == 0, out.stderr
+    mixed = json.loads((tmp_path / "d2" / "tuned.json").read_text())
+    assert mixed["steps_run"] == 4 and mixed["devices"] == 1
+    assert mixed["devices_from_step"] == [{"from_step": 0, "devices": 2}, {"from_step": 3, "devices": 1}]

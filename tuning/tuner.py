@@ -416,6 +416,12 @@ def _tune_locked(
             "config": config.fingerprint_fields(),
         }
 
+    # which device count took which steps: a run resumed on another count goes on within
+    # rounding, not bit for bit (a checkpoint of an older jaxflex starts at its resume step)
+    devices = 1 if problem.mesh is None else problem.mesh.size
+    segments = state.setdefault("devices_from_step", [])
+    if not segments or segments[-1]["devices"] != devices:
+        segments.append({"from_step": state["step"], "devices": devices})
     bar = None
     history = state["history"]
     carried = None
@@ -517,7 +523,8 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
             f"combined by {problem.config.objective.reduction}",
         },
         "dtype": str(jax.tree.leaves(best)[0].dtype),  # of the simulation: float32, or float64 under --x64
-        "devices": 1 if problem.mesh is None else problem.mesh.size,  # the scenarios were sharded over
+        "devices": 1 if problem.mesh is None else problem.mesh.size,  # this session's scenarios were sharded over
+        "devices_from_step": state["devices_from_step"],  # every session's, when a resumed run changed the count
         "steps_run": state["step"],
         "best_step": state["best_step"],
         "stopped_early": state["stopped_early"],
