@@ -557,7 +557,9 @@ def _calibrate(args: argparse.Namespace) -> int:
     if result.measured_damping.size:
         shown = ", ".join(f"{z:.4g}" for z in result.after_damping)
         measured = ", ".join(f"{z:.4g}" for z in result.measured_damping)
-        print(f"damping ratio{'s' if result.measured_damping.size > 1 else ''}: measured {measured}; model {shown} in {_first_modes(result.measured_hz.size)}")
+        n_d, n_f = result.measured_damping.size, result.after_damping.size  # n_d <= n_f: damping need not be measured in every mode
+        measured_in = "" if n_d == n_f else f" in {_first_modes(n_d)}"
+        print(f"damping ratio{'s' if n_f > 1 else ''}: measured {measured}{measured_in}; model {shown} in {_first_modes(n_f)}")
     loose = [name for name, sensitivity in zip(result.fit, result.sensitivity) if sensitivity > 10]
     if loose:
         print(f"note: the measured frequencies determine {', '.join(loose)} poorly (over 10 % per 1 % error in them): fit fewer fields, or measure more modes", file=sys.stderr)

@@ -192,6 +192,12 @@ def test_cli_names_one_damped_mode_as_mode_1(tmp_path, capsys):
     assert "damping ratio: measured 0.012; model 0.012 in mode 1\n" in capsys.readouterr().out  # was "ratios ... in modes 1-1"
 
 
+def test_cli_names_the_modes_of_fewer_measured_damping_ratios(tmp_path, capsys):
+    """Damping measured in mode 1 of 2 read "measured 0.012; model 0.012, 0.012 in modes 1-2"."""
+    assert cli.main(["calibrate", "--freqs", "13.3", "36.5", "--damping", "0.012", "--out", str(tmp_path / "cal")]) == 0
+    assert "damping ratios: measured 0.012 in mode 1; model 0.012, 0.012 in modes 1-2\n" in capsys.readouterr().out
+
+
 def test_cli_names_options_in_its_errors(tmp_path, capsys):
     assert cli.main(["calibrate", "--freqs", "30", "10", "--out", str(tmp_path / "a")]) == 2
     assert "error: --freqs must be strictly ascending" in capsys.readouterr().err
