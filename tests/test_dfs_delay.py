@@ -231,3 +231,27 @@ def test_traced_fractional_tau_with_nearest_reads_is_not_rounded(plant2):
         assert not bool(metrics(tau).diverged), tau
     linear = jax.jit(lambda t: jf.rollout(plant2, dfs(DT, interpolation="linear"), DFSParams(K, t), sc, output="metrics"))
     assert not bool(linear(0.00244).diverged)
+
+
+def test_traced_tau_at_the_capacity_to_round_off_is_held():
+    """The traced delay's bound is the buffer's capacity to round-off, as check()'s: 0.07 s
+    at 0.01 s is 7.000000000000001 samples and float32's 64 ms at 1 ms 64.000003; both are
+    the capacity and give the delayed angle, not a NaN torque. A whole sample beyond is NaN.
+    (One controller step, tau traced: y(0) = 0.2 rad, then 0.5 rad, so the delayed angle
+    is the history, 0.2 rad, and u = -k (0.5 - 0.2).)"""
+    for dt, capacity, tau, beyond in ((0.01, 7, 0.07, 0.08), (1e-3, 64, np.float32(0.064), np.float32(0.065))):
+        for interpolation in ("nearest", "linear", "cubic"):
+            ctrl = dfs(dt, capacity=capacity, interpolation=interpolation)
+            ctrl.check(DFSParams(K, tau))  # concrete: accepted
+
+            @jax.jit
+            def first_torques(tau):
+                params = DFSParams(K, tau)
+                state = ctrl.init(params, jnp.array([0.2, 0.0]))
+                state, u0 = ctrl.step(params, state, jnp.array([0.2, 0.0]))
+                return u0[0], ctrl.step(params, state, jnp.array([0.5, 0.0]))[1][0]
+
+            u0, u1 = first_torques(tau)
+            assert float(u0) == 0.0, (dt, tau, interpolation)
+            np.testing.assert_allclose(float(u1), -K * (0.5 - 0.2), rtol=1e-12, err_msg=f"{dt} {tau} {interpolation}")
+            assert math.isnan(float(first_torques(beyond)[1])), (dt, beyond, interpolation)

@@ -5,6 +5,8 @@ smooth mode (temperature > 0): convergence to the faithful surface as T -> 0, th
 program, smoothness across the faithful kinks, gradients at those kinks and through a closed
 loop, ranges, symmetry, NaN-free gradients, float32 and validation."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -788,3 +790,41 @@ def test_surface_names_parameters_of_the_wrong_kind():
     """A dict of gains failed inside the surface with an AttributeError."""
     with pytest.raises(ValueError, match=r"params must be a FuzzyParams \(k1, k2, k3, angle_centres, velocity_centres, torque_centres\); got dict"):
         fuzzy_surface({"k1": 1.0}, 0.1, 0.2)
+
+
+def test_set_names_and_rule_shapes_are_refused_by_name():
+    """A single set (no interval to interpolate over: an IndexError in the memberships at
+    the first step), repeated names (the rules would read the last of them) and rules of
+    more than three names (NumPy's reshape error) are refused by name at construction."""
+    for f in (lambda **kw: fuzzy(**kw), lambda **kw: fuzzy_surface(fuzzy_params(centres=(-1.0, 0.0, 1.0)), 0.1, 0.2, **kw)):
+        with pytest.raises(ValueError, match=r"set_names must be at least 2 strings; got \('ZE',\)"):
+            f(set_names=("ZE",), rules=(("ZE", "ZE", "ZE"),))
+        with pytest.raises(ValueError, match=r"set_names must be at least 2 strings"):
+            f(set_names=("N", 0, "P"), rules=(("N", "N", "P"),))
+        with pytest.raises(ValueError, match=r"set_names must be distinct; got \('N', 'Z', 'N'\)"):
+            f(set_names=("N", "Z", "N"), rules=(("N", "Z", "Z"),))
+        with pytest.raises(ValueError, match=r"rule 1 must be an \(angle, velocity, torque\) triple of set names; got \('N', 'Z', 'P', 'P'\)"):
+            f(set_names=("N", "Z", "P"), rules=(("N", "Z", "P"), ("N", "Z", "P", "P")))
+    # the smallest accepted system: two sets, one rule; list rows are triples too
+    two = fuzzy_params(centres=(-1.0, 1.0))
+    assert float(fuzzy_surface(two, -1.0, -1.0, set_names=("N", "P"), rules=[["N", "N", "P"]])) == pytest.approx(1.0 / 3.0, abs=ATOL_ROUND)
+
+
+def test_a_measurement_that_is_not_angle_and_velocity_is_refused():
+    """The step reads y[0] and y[1]: a y of 3 entries (a state passed for the measurement)
+    ran on its first two, silently; one of 1 entry failed with JAX's IndexError."""
+    controller, params = fuzzy(), fuzzy_params()
+    for shape in ((3,), (1,), (3, 4), (2, 2, 2), ()):
+        with pytest.raises(ValueError, match=rf"y must have shape \(2,\) \(theta, theta_dot\), or \(2, B\) for a batch; got {re.escape(str(shape))}"):
+            controller.step(params, (), jnp.zeros(shape))
+    _, u = controller.step(params, (), jnp.zeros((2, 4)))  # a batch of 4
+    assert u.shape == (1, 4)
+
+
+def test_the_surface_takes_scalars():
+    """fuzzy_surface is the surface at one point (vmap it for grids): arrays of inputs are
+    refused by name, not broadcast through the scalar chain."""
+    params = fuzzy_params()
+    for e, e_dot in ((jnp.zeros(3), 0.0), (0.0, jnp.zeros((2, 2))), (jnp.zeros(1), jnp.zeros(1))):
+        with pytest.raises(ValueError, match=r"e and e_dot must be scalars \(vmap for grids\); got shapes"):
+            fuzzy_surface(params, e, e_dot)

@@ -252,3 +252,25 @@ def test_a_signal_that_is_not_numbers_is_refused_by_name():
     with pytest.raises(ValueError, match=r"x must be a real number or an array of real numbers"):
         welch(np.ones(300, bool), 1000.0)
     np.testing.assert_allclose(ise([1, 2], 1e-3), 5e-3)  # integers are numbers
+
+
+def test_an_empty_record_is_refused_by_name():
+    """A record of no samples has no peak, final value or settling time: each metric refuses
+    it by name (the integrals read 0 and the peaks failed in JAX's reduction)."""
+    match = r"s must have shape \[T\] or \[T, n\] with T >= 1 \(time first\); got shape \(0,?( 2)?\)"
+    for empty in (np.zeros(0), np.zeros((0, 2))):
+        for f in (peaks, lambda s: ise(s, DT), lambda s: iae(s, DT), lambda s: control_effort(s, DT), lambda s: settling_time(s, DT), lambda s: signal_metrics(s, DT), lambda s: samples_at(s, DT, (0.0,))):
+            with pytest.raises(ValueError, match=match):
+                f(empty)
+
+
+def test_a_traced_dt_must_be_a_scalar():
+    """Under jit dt is not checked for its value, but its shape is: a [n] dt against a [T, n]
+    signal broadcast into per-column sample times (the integrals came out scaled column by
+    column, with no error)."""
+    s = np.ones((10, 2))
+    dts = jnp.array([1e-3, 2e-3])
+    for f in (ise, iae, control_effort, settling_time, lambda s, dt: samples_at(s, dt, (0.0,))):
+        with pytest.raises(ValueError, match=r"dt must be a scalar \(s\); got shape \(2,\)"):
+            jax.jit(f)(s, dts)
+    np.testing.assert_allclose(jax.jit(ise)(s, jnp.asarray(1e-3)), [10e-3, 10e-3], rtol=RTOL_SUM)  # a traced scalar runs
