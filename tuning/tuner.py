@@ -523,7 +523,7 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
             f"combined by {problem.config.objective.reduction}",
         },
         "dtype": str(jax.tree.leaves(best)[0].dtype),  # of the simulation: float32, or float64 under --x64
-        "devices": 1 if problem.mesh is None else problem.mesh.size,  # this session's scenarios were sharded over
+        "devices": state["devices_from_step"][-1]["devices"],  # this session's scenarios were sharded over
         "devices_from_step": state["devices_from_step"],  # every session's, when a resumed run changed the count
         "steps_run": state["step"],
         "best_step": state["best_step"],
