@@ -695,3 +695,31 @@ def test_a_scenario_that_is_not_a_scenario_of_finite_arrays_is_refused_by_name(p
     batch = batch._replace(x0=batch.x0.at[1, 1].set(jnp.nan))
     m = jax.vmap(lambda s: run(s, output="metrics"))(batch)
     assert m.diverged.tolist() == [False, True]
+
+
+def test_a_zero_frequency_is_a_mode_frequency_and_an_empty_horizon_is_refused(plant2):
+    """mode_freqs_hz accepts 0 Hz, as documented (>= 0): its modal energy is the squared
+    Hann-windowed sum of the tip deflection, from the trajectory in NumPy. A scenario of no
+    samples is refused by name (it failed in JAX's indexing of the empty noise)."""
+    steps = 120
+    sc = Scenario(paper_scenario(plant2).x0, jnp.zeros((steps, 1)).at[3:8, 0].set(0.2), jnp.zeros((steps, 2)))
+    controller, params = dfs(), DFSParams(55.0, 0.005)
+    m = jf.rollout(plant2, controller, params, sc, output="metrics", mode_freqs_hz=[0.0, 13.3])
+    tip = np.asarray(jf.rollout(plant2, controller, params, sc).z[:, 1])
+    hann = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(steps) / steps)
+    t = np.arange(steps) * 1e-3
+    expected = [abs(np.sum(hann * tip * np.exp(-2j * np.pi * f * t)) * 1e-3) ** 2 for f in (0.0, 13.3)]
+    np.testing.assert_allclose(np.asarray(m.modal_energy), expected, rtol=1e-9)
+    assert expected[0] > 0
+    with pytest.raises(ValueError, match=r"scenario.force must have shape \(T, 1\) with T >= 1 \(one scenario\); got \(0, 1\)"):
+        jf.rollout(plant2, controller, params, Scenario(sc.x0, jnp.zeros((0, 1)), jnp.zeros((0, 2))))
+
+
+def test_parameters_narrower_than_the_plant_run_as_their_float64_values(plant2):
+    """Only parameters wider than the plant are refused: float32 gains in a float64 loop
+    promote, and give the run of the same values held in float64."""
+    sc = paper_scenario(plant2, horizon_s=0.05)
+    params32 = fuzzy_params(dtype=jnp.float32)
+    run = lambda p: jf.rollout(plant2, fuzzy(), p, sc, output="metrics")  # noqa: E731
+    tree_allclose(run(params32), run(jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), params32)), rtol=1e-12, atol=0)
+    assert run(params32).tip_ise.dtype == jnp.float64
