@@ -460,7 +460,8 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     with fileio.replace_outputs(out_dir, [*FIGURES, TUNED_FIGURE, "report.md", "results.json"], last="results.json") as stage:
         t = np.asarray(trajectories["open_loop"].t)
         div = {name: r["diverged"] for name, r in runs.items()}
-        sig = {name: {"q1": np.asarray(tr.x[:, 1]), "tip": np.asarray(tr.z[:, 1])} for name, tr in trajectories.items()}
+        signals = lambda tr: {"q1": np.asarray(tr.x[:, 1]), "tip": np.asarray(tr.z[:, 1])}
+        sig = {name: signals(tr) for name, tr in trajectories.items()}
         panels = [("q1", "q1 (m)"), ("tip", "Tip deflection (m)")]
         for run, resp, psdfig in (("dfs", "fig5_dfs_response.png", "fig6_dfs_psd.png"), ("fuzzy", "fig7_fuzzy_response.png", "fig8_fuzzy_psd.png")):
             label = plotting.LABELS[run]
@@ -476,7 +477,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf)), os.path.join(stage, "fig4_fuzzy_surface.png"))
 
         if tuned is not None:
-            pair = {"open_loop": sig["open_loop"], **{name: {"q1": np.asarray(tr.x[:, 1]), "tip": np.asarray(tr.z[:, 1])} for name, tr in ((tuned.name, paper_traj), (f"tuned {tuned.name}", ttraj))}}
+            pair = {"open_loop": sig["open_loop"], tuned.name: signals(paper_traj), f"tuned {tuned.name}": signals(ttraj)}
             div[tuned.name] = tuned_results["paper_run"]["diverged"]
             div[f"tuned {tuned.name}"] = tuned_results["run"]["diverged"]
             plotting.save(plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned.name} ({os.path.basename(str(params_file))})"), os.path.join(stage, TUNED_FIGURE))
