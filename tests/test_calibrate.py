@@ -256,3 +256,45 @@ def test_sensitivity_is_the_first_order_change_of_a_refit():
         moves.append([np.log(getattr(refit.beam, name) / getattr(result.beam, name)) / h for name in result.fit])
     np.testing.assert_allclose(result.sensitivity, np.sqrt(np.sum(np.square(moves), axis=0)), rtol=1e-3)
     assert result.sensitivity[1] > 10 > result.sensitivity[0]  # the hub inertia, not E
+
+
+def test_equal_frequencies_are_refused():
+    """Two modes at one frequency are not strictly ascending (a mode measured twice)."""
+    with pytest.raises(ValueError, match=r"measured_hz must be strictly ascending, mode 1 first \(Hz\); got \[14.0, 14.0\]"):
+        calibrate([14.0, 14.0], PAPER, ("youngs_modulus_pa",))
+
+
+def test_one_frequency_is_fitted_with_the_two_mode_model_by_default():
+    """n_modes defaults to max(2, n_f): the model jaxflex simulates by default."""
+    measured = np.asarray(natural_frequencies_hz(PAPER._replace(youngs_modulus_pa=80e9), 2))[:1]
+    result = calibrate(measured, PAPER)
+    assert result.n_modes == 2 and result.fit == ("youngs_modulus_pa",)
+    np.testing.assert_allclose(result.beam.youngs_modulus_pa, 80e9, rtol=1e-9)  # the 1-mode model's mode 1 would give another E
+    assert "n_modes = 2\n" in to_toml(result)
+
+
+def test_as_dict_reports_the_start_the_errors_and_the_measured_damping():
+    # E alone against two frequencies: the model is left above one and below the other
+    true = PAPER._replace(youngs_modulus_pa=90e9, hub_inertia_kg_m2=4e-4)
+    measured = np.asarray(natural_frequencies_hz(true, 2))
+    result = calibrate(measured, PAPER, ("youngs_modulus_pa",), damping=[0.03, 0.001])  # beyond Rayleigh's reach: the model's differ
+    d = json.loads(json.dumps(result.as_dict()))
+    fitted = d["fitted"]["youngs_modulus_pa"]
+    assert fitted["start"] == 71e9 and fitted["calibrated"] == result.beam.youngs_modulus_pa != 71e9
+    model = np.asarray(natural_frequencies_hz(result.beam, 2))
+    np.testing.assert_allclose(d["model_after_hz"], model, rtol=1e-12)
+    np.testing.assert_allclose(d["error_after_percent"], [100 * (m / f - 1) for m, f in zip(model, measured)], rtol=1e-9)
+    assert min(d["error_after_percent"]) < -0.1 and max(d["error_after_percent"]) > 0.1
+    assert d["measured_damping"] == [0.03, 0.001] and d["measured_hz"] == measured.tolist()
+    np.testing.assert_allclose(d["model_damping"], _plant_damping(result.beam, 2), rtol=1e-9)
+
+
+def test_a_fit_that_does_not_converge_is_refused(monkeypatch):
+    """A search stopped by its evaluation budget is no calibration (here a budget of 1)."""
+    import scipy.optimize
+
+    real = scipy.optimize.least_squares
+    monkeypatch.setattr(scipy.optimize, "least_squares", lambda *args, **kwargs: real(*args, **{**kwargs, "max_nfev": 1}))
+    measured = np.asarray(natural_frequencies_hz(PAPER._replace(youngs_modulus_pa=80e9, hub_inertia_kg_m2=5e-4), 2))
+    with pytest.raises(ValueError, match=r"the fit did not converge \(.*\); start from an arm closer to the measured one"):
+        calibrate(measured, PAPER)

@@ -301,3 +301,57 @@ def test_cli_notes_a_window_too_short_for_mode_1_as_short_not_as_sampled_too_fas
     err = capsys.readouterr().err
     assert "less than a period of mode 1" in err and "so short" in err and "--end" in err
     assert "sampled so fast" not in err
+
+
+def test_read_record_takes_spreadsheet_exports(tmp_path):
+    """A trailing comma on every line (an empty last cell) is no column, and a UTF-8
+    byte-order mark is no part of the first cell: both as a spreadsheet writes a CSV."""
+    path = tmp_path / "r.csv"
+    path.write_text("time_s,tip_m,\n0.0,1.5,\n0.001,2.5,\n")
+    t, y, names = read_record(path)
+    np.testing.assert_array_equal(t, [0.0, 0.001])
+    np.testing.assert_array_equal(y, [[1.5], [2.5]])
+    assert names == ["tip_m"]
+    path.write_bytes(b"\xef\xbb\xbf0.0,1.5\n0.001,2.5\n")  # no header: the first row is numbers
+    t, y, names = read_record(path)
+    np.testing.assert_array_equal(t, [0.0, 0.001])
+    assert names == ["channel 1"] and y.shape == (2, 1)
+
+
+def test_a_swing_of_less_than_a_cycle_is_no_mode():
+    """A slow swing (0.2 Hz: 0.6 of a cycle in the 3 s window, undamped) cannot be told from a
+    drift; set aside, the lowest mode is the 20 Hz one."""
+    tt = np.arange(3000) * DT
+    y = 2.0 * np.sin(2 * np.pi * 0.2 * tt + 0.4) + np.exp(-1.0 * tt) * np.sin(2 * np.pi * 20 * tt)
+    modes = identify_modes(tt, y, 1)
+    wn = np.hypot(2 * np.pi * 20, 1.0)
+    np.testing.assert_allclose(modes.frequencies_hz, [wn / (2 * np.pi)], rtol=1e-9)
+    np.testing.assert_allclose(modes.damping, [1.0 / wn], rtol=1e-7)
+
+
+def test_lag_span_is_that_of_the_lags_fitted():
+    """The lags run over a third of the window, at most MAX_ROWS of them: 1000 samples span
+    1000 // 3 = 333 lags (0.333 s), 3000 samples MAX_ROWS (0.4 s); the command's notes on a
+    short window and on fast sampling tell the two apart by this count."""
+    from tuning.identify import MAX_ROWS
+
+    tt = np.arange(3000) * DT
+    y = np.exp(-1.0 * tt) * np.sin(2 * np.pi * 20 * tt)
+    assert identify_modes(tt, y, 1).lag_span_s == pytest.approx(MAX_ROWS * DT, rel=1e-9)
+    assert identify_modes(tt[:1000], y[:1000], 1).lag_span_s == pytest.approx(333 * DT, rel=1e-9)
+
+
+def test_a_window_of_no_length_is_refused_as_such():
+    tt = np.arange(300) * DT
+    with pytest.raises(ValueError, match=r"end_s must be after start_s; got start_s = 0.1 s, end_s = 0.1 s"):
+        identify_modes(tt, np.sin(2 * np.pi * 20 * tt), 1, start_s=0.1, end_s=0.1)
+
+
+def test_a_slowly_growing_mode_is_refused():
+    """A damping ratio of -4e-4 (growing by 16 % over 3 s) is no free decay: the bound is 0."""
+    tt = np.arange(3000) * DT
+    y = np.exp(0.05 * tt) * np.sin(2 * np.pi * 20 * tt)
+    with pytest.raises(ValueError, match=r"the mode\(s\) at 20 Hz do not decay in the window"):
+        identify_modes(tt, y, 1)
+    modes = identify_modes(tt, np.exp(-0.05 * tt) * np.sin(2 * np.pi * 20 * tt), 1)  # its mirror image decays
+    np.testing.assert_allclose(modes.damping, [0.05 / np.hypot(2 * np.pi * 20, 0.05)], rtol=1e-7)

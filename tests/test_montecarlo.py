@@ -5,6 +5,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -587,7 +588,44 @@ def test_resume_says_so_and_its_bar_starts_at_the_stored_chunks(tmp_path, monkey
     err = capsys.readouterr().err
     assert f"montecarlo: resuming: 3 of 5 chunks already in {tmp_path / 'chunks'}" in err
     assert "30/45" in err and "10/45" not in err, err
+    # and only the chunks run add to it: it ends at 45/45, the stored ones not counted twice (75/45)
+    counts = [int(n) for n in re.findall(r"\b(\d+)/45\b", err)]
+    assert max(counts) == counts[-1] == 45, err
     assert summary["n_scenarios"] == 45 and summary["metrics"]["tip_ise"]["max"] == 5.0
     # without the bar (--no-progress) it still says so: it said nothing there
     summary = run_montecarlo(config, tmp_path, resume=True, progress=False, figures=False)
     assert f"montecarlo: resuming: 5 of 5 chunks already in {tmp_path / 'chunks'}" in capsys.readouterr().err
+
+
+def test_tip_bands_are_over_the_first_scenarios_of_chunk_0():
+    """The bands are the percentiles, at each time, of the tip deflection of chunk 0's first
+    band_scenarios scenarios (the paper's one first), recomputed here one rollout at a time."""
+    spec = ScenarioSpec(horizon_s=0.05, impulse_max_n=0.5, impulse_duration_s=0.005, noise_angle_rad=1e-6)
+    config = MCConfig(controller="dfs", n_scenarios=16, chunk=8, band_scenarios=5, scenarios=spec)
+    t, bands, kept, count = montecarlo.tip_bands(montecarlo._Runner(config), [10.0, 50.0, 90.0])
+    assert (kept, count) == (5, 5) and bands.shape == (3, 50)
+    np.testing.assert_allclose(t, np.arange(50) * 1e-3)
+    batch = sample_scenarios(spec, jax.random.fold_in(jax.random.key(0), 0), 8)
+    plant = discretize(make_plant(BeamParams(), 2), 1e-3, "rk4")
+    controller, params = controller_and_params("dfs", {}, 1e-3, config.capacity)
+    tip = jax.jit(lambda sc: jf.rollout(plant, controller, params, sc).z[:, 1])
+    tips = [np.asarray(tip(jax.tree.map(lambda a, i=i: a[i], batch))) for i in range(5)]
+    np.testing.assert_allclose(bands, np.percentile(np.array(tips), [10, 50, 90], axis=0), rtol=1e-9, atol=1e-15)
+
+
+def test_histograms_leave_out_the_diverged_runs(tmp_path, monkeypatch):
+    """As the statistics: a diverged run's metrics (1e22 m) are no part of the histograms."""
+    from types import SimpleNamespace
+
+    config = MCConfig(controller="dfs", n_scenarios=3, scenarios=ScenarioSpec(horizon_s=0.05))
+    names = montecarlo.metric_names(config.n_modes)
+    columns = {name: np.asarray([1.0, 1e22, 3.0]) for name in names}
+    columns["diverged"] = np.asarray([False, True, False])
+    drawn = {}
+    monkeypatch.setattr(plotting, "histograms", lambda data, labels, title: drawn.update(data=data, title=title))
+    monkeypatch.setattr(plotting, "percentile_bands", lambda *args: None)
+    monkeypatch.setattr(plotting, "save", lambda fig, path: None)  # nothing drawn: what is handed to the figure is tested
+    monkeypatch.setattr(montecarlo, "tip_bands", lambda runner, percentiles: (np.arange(2) * 1e-3, np.zeros((len(percentiles), 2)), 2, 3))
+    montecarlo._figures(SimpleNamespace(config=config, beam=config.beam), columns, str(tmp_path))
+    assert set(drawn["data"]) == set(names) and all(list(v) == [1.0, 3.0] for v in drawn["data"].values())
+    assert drawn["title"].startswith("dfs: 2 of 3 runs (diverged left out)")

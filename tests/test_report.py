@@ -327,6 +327,107 @@ def test_writes_sweep_the_temporaries_of_killed_runs_only(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.txt", "new.md", "other.md"]
 
 
+def test_atomic_write_puts_the_data_on_disk_before_the_rename(tmp_path, monkeypatch):
+    """After a power loss the file is the old or the new one: the temporary file's data is
+    synced (fsync) before it is renamed over the path, not after."""
+    events, real_fsync, real_replace = [], os.fsync, os.replace
+    monkeypatch.setattr(fileio.os, "fsync", lambda fd: (events.append(("fsync", os.fstat(fd).st_ino)), real_fsync(fd))[1])
+    monkeypatch.setattr(fileio.os, "replace", lambda src, dst: (events.append(("replace", os.stat(src).st_ino)), real_replace(src, dst))[1])
+    fileio.write_text(tmp_path / "results.json", "{}")
+    monkeypatch.undo()
+    inode = (tmp_path / "results.json").stat().st_ino
+    assert events == [("fsync", inode), ("replace", inode)]
+
+
+def test_replace_outputs_keeps_the_permissions_of_the_files_it_replaces(tmp_path):
+    """As atomic_write: a replaced file keeps its mode, a new one gets the umask's default."""
+    (tmp_path / "results.json").write_text("old")
+    (tmp_path / "results.json").chmod(0o600)
+    old = os.umask(0o022)
+    try:
+        with fileio.replace_outputs(tmp_path, ["results.json", "new.md"]) as stage:
+            Path(stage, "results.json").write_text("new")
+            Path(stage, "new.md").write_text("new")
+            os.chmod(os.path.join(stage, "new.md"), 0o600)  # as a temporary file is made
+    finally:
+        os.umask(old)
+    assert (tmp_path / "results.json").read_text() == "new"
+    assert stat.S_IMODE((tmp_path / "results.json").stat().st_mode) == 0o600
+    assert stat.S_IMODE((tmp_path / "new.md").stat().st_mode) == 0o644
+
+
+@pytest.mark.skipif(fileio.fcntl is None, reason="the run lock needs POSIX locks")
+def test_run_lock_is_held_in_the_block_taken_again_inside_and_released_after(tmp_path):
+    """The lock is an flock another open file cannot take while a block holds it; a block
+    inside it on the same folder (another spelling of it) is let through; after the block it
+    is free, and the next block holds it again (not only the first one of a process)."""
+    import fcntl
+
+    def free() -> bool:
+        fd = os.open(tmp_path / fileio.RUN_LOCK, os.O_RDWR)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        finally:
+            os.close(fd)
+        return True
+
+    for _ in range(2):
+        with fileio.run_lock(tmp_path):
+            assert not free()
+            with fileio.run_lock(tmp_path / "."):
+                assert not free()
+            assert not free()  # the inner block leaves the outer one's lock
+        assert free()
+
+
+def test_digest_ignores_key_order_and_changed_fields_names_what_differs():
+    a = {"seed": 0, "scenarios": {"dt": 0.001, "horizon_s": 3.0}, "controller": "dfs"}
+    b = {"controller": "dfs", "scenarios": {"horizon_s": 3.0, "dt": 0.001}, "seed": 0}
+    assert fileio.digest(a) == fileio.digest(b) and re.fullmatch(r"[0-9a-f]{16}", fileio.digest(a))
+    assert fileio.digest({**a, "seed": 1}) != fileio.digest(a)
+    # a key the folder's record lacks (written by an older version) is no change named, nor a KeyError
+    assert fileio.changed_fields(a, {**b, "seed": 3, "new_option": 1}) == "changed: seed"
+    assert fileio.changed_fields(a, {**b, "new_option": 1}) == "the configuration changed"
+    assert fileio.changed_fields(None, a) == "the configuration changed"
+    assert fileio.changed_fields({**a, "program": "x"}, {**a, "program": "y", "seed": 2}) == "changed: program: 'x' -> 'y', seed"
+
+
+def test_to_jsonable_keeps_non_finite_numbers_when_asked():
+    value = {"a": np.array([np.inf, 1.5]), "b": (np.float64(np.nan), -math.inf), 1: np.int64(2)}
+    kept = fileio.to_jsonable(value, finite=False)
+    assert kept["a"] == [math.inf, 1.5] and math.isnan(kept["b"][0]) and kept["b"][1] == -math.inf and kept["1"] == 2
+    assert fileio.to_jsonable(value) == {"a": [None, 1.5], "b": [None, None], "1": 2}
+
+
+def test_program_changes_with_the_source_of_either_package(tmp_path, monkeypatch):
+    """A resume is refused when the code of jaxflex or of tuning (the tuner, the objectives)
+    changed: the fingerprint hashes every .py file of both, and no other file."""
+    for name in ("jaxflex/fileio.py", "jaxflex/sub/a.py", "tuning/tuner.py"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text("x = 1\n")
+    monkeypatch.setattr(fileio, "__file__", str(tmp_path / "jaxflex" / "fileio.py"))
+
+    def program() -> str:
+        fileio.program.cache_clear()
+        return fileio.program()
+
+    try:
+        first = program()
+        (tmp_path / "tuning" / "notes.txt").write_text("not code")
+        assert program() == first
+        seen = {first}
+        for name in ("tuning/tuner.py", "jaxflex/sub/a.py"):
+            (tmp_path / name).write_text("x = 2\n")
+            seen.add(program())
+        assert len(seen) == 3
+    finally:
+        monkeypatch.undo()
+        fileio.program.cache_clear()
+    assert fileio.program() != first
+
+
 def test_readme_quick_start_matches_ci():
     readme = (ROOT / "README.md").read_text()
     quick_start = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]

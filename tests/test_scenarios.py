@@ -269,3 +269,98 @@ def test_pad_batch_repeats_the_last_scenario_and_refuses_what_is_not_a_batch():
         pad_batch({"a": jnp.ones(3), "b": jnp.ones(4)}, 2)
     with pytest.raises(ValueError, match=r"got leading sizes \[None\]"):
         pad_batch(jnp.ones(()), 2)
+
+
+def test_each_factor_of_a_perturbation_scales_its_own_field():
+    """Distinct factors, so that one applied to another's field shows (the tests above draw
+    rho and I_H at 1, where any mix-up of the two was invisible)."""
+    arm = BeamParams(payload_mass_kg=0.1)
+    got = perturbed_params(arm, PlantPerturbation(*map(np.float64, (1.1, 1.2, 0.7, 0.02))))
+    assert got.youngs_modulus_pa == pytest.approx(1.1 * arm.youngs_modulus_pa, rel=1e-15)
+    assert got.density_kg_m3 == pytest.approx(1.2 * arm.density_kg_m3, rel=1e-15)
+    assert got.hub_inertia_kg_m2 == pytest.approx(0.7 * arm.hub_inertia_kg_m2, rel=1e-15)
+    assert got.payload_mass_kg == pytest.approx(0.12, rel=1e-15)
+    assert all(getattr(got, name) == getattr(arm, name) for name in ("length_m", "width_m", "thickness_m", "damping_ratio"))
+    assert perturbed_params(arm, None) is arm
+
+
+@pytest.mark.parametrize(
+    "changes, factors",
+    [
+        # I_H x0.5 lifts mode 2 to omega dt = 3.35 at 12 ms (the nominal arm: 2.75)
+        (dict(hub_inertia_rel=0.5), (1.0, 1.0, 0.5, 0.0)),
+        # a payload only lowers the modes: the arm that grows is E x1.5 with none
+        (dict(youngs_modulus_rel=0.5, payload_max_kg=0.1), (1.5, 1.0, 1.0, 0.0)),
+    ],
+)
+def test_check_plants_reaches_the_lower_end_of_each_range(changes, factors):
+    """Each factor's range has two ends, and the fastest mode may be at the lower one: a
+    lighter hub, or no payload, raises the frequencies."""
+    spec = ScenarioSpec(horizon_s=1.0, dt=0.012, **changes)
+    check_rk4_step(make_plant(), spec.dt)  # the nominal arm runs at this dt
+    with pytest.raises(ValueError, match="is unstable"):  # the arm at that end does not
+        check_rk4_step(make_plant(perturbed_params(BeamParams(), PlantPerturbation(*map(np.float64, factors)))), spec.dt)
+    e, rho, hub, payload = (f"{v:g}" for v in factors)
+    with pytest.raises(ValueError, match=rf"reaches an arm \(E x{e}, rho x{rho}, I_H x{hub}, payload \+{payload} kg\) that cannot be run"):
+        check_plants(spec, BeamParams(), 2, "rk4")
+
+
+def test_a_horizon_shorter_than_one_sample_is_refused():
+    """0.4 ms at 1 ms rounds to no sample at all; 0.6 ms rounds to one."""
+    from jaxflex.scenarios import horizon_steps, paper_scenario
+
+    with pytest.raises(ValueError, match=r"horizon_s must cover at least one sample of dt = 0.001; got 0.0004"):
+        horizon_steps(4e-4, 1e-3)
+    with pytest.raises(ValueError, match=r"horizon_s must cover at least one sample"):
+        ScenarioSpec(horizon_s=4e-4)
+    with pytest.raises(ValueError, match=r"horizon_s must cover at least one sample"):
+        paper_scenario(make_plant(), horizon_s=4e-4)
+    assert horizon_steps(6e-4, 1e-3) == 1 and paper_scenario(make_plant(), horizon_s=6e-4).force.shape == (1, 1)
+
+
+def test_block_reading_needs_two_modes():
+    """With one mode the state is [theta, q1, theta_dot, q1_dot]: "block" would set
+    theta_dot = 1e-3 rad/s, not a q_2 that the model lacks."""
+    from jaxflex.scenarios import paper_scenario
+
+    with pytest.raises(ValueError, match=r"reading='block' sets q_2 and needs n_modes >= 2; got n_modes = 1"):
+        paper_scenario(make_plant(BeamParams(), 1), reading="block")
+    np.testing.assert_array_equal(np.asarray(paper_scenario(make_plant(BeamParams(), 1)).x0), [0, 1e-3, 0, 1e-5])
+
+
+def test_initial_state_components_are_drawn_independently():
+    """One key per component: a key used twice made q_i(0) and q_i_dot(0) the same draw
+    scaled (correlation 1), which the standard deviations alone do not show."""
+    x0 = draw(SPEC).x0[:, [0, 1, 2, 4, 5]]  # theta, q1, q2, q1_dot, q2_dot (theta_dot is 0)
+    corr = np.corrcoef(x0.T)
+    assert np.max(np.abs(corr - np.eye(5))) < 0.1
+
+
+def test_an_impulse_of_one_sample_is_accepted():
+    """impulse_duration_s may equal dt (the docs' range [dt, horizon_s / 2]): a one-sample pulse."""
+    spec = ScenarioSpec(horizon_s=0.05, impulse_max_n=1.0, impulse_duration_s=1e-3, include_paper=False)
+    lengths = np.sum(np.asarray(sample_scenarios(spec, jax.random.key(0), 256).force[:, :, 0]) != 0, axis=1)
+    assert np.all(lengths <= 2) and np.mean(lengths == 1) > 0.9
+
+
+def test_a_spec_without_uncertainty_draws_no_plant():
+    """Factors of 1 and no payload are the nominal plant: no per-scenario plant is drawn
+    (batch_plant then shares the nominal one over the batch)."""
+    spec = ScenarioSpec(horizon_s=0.01)
+    assert not spec.perturbs_plant and sample_scenarios(spec, jax.random.key(0), 2).plant is None
+    assert all(ScenarioSpec(horizon_s=0.01, **{name: 0.1}).perturbs_plant for name in ("youngs_modulus_rel", "density_rel", "hub_inertia_rel", "payload_max_kg"))
+
+
+@pytest.mark.parametrize("dt", [1.05e-3, 1.001e-3, 0.999e-3])
+def test_paper_scenario_refuses_a_dt_near_the_sampled_plants(dt):
+    """Only the sampled plant's own dt (to float32's rounding) is taken: a dt 0.1 % off would
+    run the horizon at a time step the plant was not sampled at."""
+    from jaxflex import discretize
+    from jaxflex.scenarios import paper_scenario
+
+    plant = discretize(make_plant(), 1e-3)
+    with pytest.raises(ValueError, match=r"differs from the sampled plant's dt = 0.001 s"):
+        paper_scenario(plant, 0.1, dt=dt)
+    assert paper_scenario(plant, 0.1, dt=1e-3).force.shape == (100, 1)
+    plant32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), plant)  # holds dt rounded
+    assert paper_scenario(plant32, 0.1, dt=1e-3).force.shape == (100, 1)
