@@ -296,7 +296,7 @@ def test_cli_notes_a_record_the_modes_do_not_explain_and_one_sampled_too_fast(tm
 def test_cli_notes_a_window_too_short_for_mode_1_as_short_not_as_sampled_too_fast(tmp_path, capsys):
     tt = np.arange(3000) * DT
     _write_record(tmp_path / "r.csv", tt, np.exp(-0.1 * tt) * np.sin(2 * np.pi * 12 * tt), "t,a")
-    # 0.2 s at 1 kHz: 66 lags span 66 ms, less than a period (83 ms); decimating would shorten them further
+    # 0.2 s at 1 kHz (201 samples): the lags span 67 ms, less than a period (83 ms); decimating would shorten them further
     assert cli.main(["calibrate", "--record", str(tmp_path / "r.csv"), "--record-modes", "1", "--end", "0.2", "--out", str(tmp_path / "a")]) == 0
     err = capsys.readouterr().err
     assert "less than a period of mode 1" in err and "so short" in err and "--end" in err
