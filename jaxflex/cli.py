@@ -77,7 +77,10 @@ def _use_cpu_devices(count: int | None) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from jaxflex import __version__
+
     parser = argparse.ArgumentParser(prog="jaxflex", description="Differentiable simulator and tuner for vibration control of flexible manipulators.")
+    parser.add_argument("--version", action="version", version=f"jaxflex {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     rep = sub.add_parser("reproduce", help="reproduce the paper: three runs, figures, report.md, results.json")
     rep.add_argument("--out", default="results", help="output folder (default: ./results)")

@@ -428,6 +428,23 @@ def test_program_changes_with_the_source_of_either_package(tmp_path, monkeypatch
     assert fileio.program() != first
 
 
+def test_version_is_one_value_the_cli_and_the_installed_package_report(capsys):
+    """``jaxflex --version`` prints the package's version, which pyproject.toml reads from
+    jaxflex/__init__.py (one place), so the installed metadata says the same."""
+    import importlib.metadata
+
+    import jaxflex
+
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out == f"jaxflex {jaxflex.__version__}\n"
+    assert re.fullmatch(r"\d+\.\d+\.\d+", jaxflex.__version__)
+    assert importlib.metadata.version("jaxflex") == jaxflex.__version__
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    assert 'dynamic = ["version"]' in pyproject and "\nversion =" not in pyproject.split("[tool.setuptools.dynamic]")[0]
+
+
 def test_readme_quick_start_matches_ci():
     readme = (ROOT / "README.md").read_text()
     quick_start = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
