@@ -28,6 +28,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _host_port(text: str) -> str:
+    """``--coordinator``'s HOST:PORT, checked before JAX sees it: JAX indexes past a missing
+    port (an IndexError) and its gRPC server aborts the process on a port that is not a number."""
+    host, sep, port = text.rpartition(":")
+    bracketed = host.startswith("[") and host.endswith("]") and len(host) > 2
+    if not sep or not host or ":" in host and not bracketed or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT with a port from 1 to 65535 (an IPv6 host in brackets: [::1]:1234); got {text!r}")
+    return text
+
+
 # More CPU devices than cores only add overhead, and with hundreds XLA's collectives (the
 # tuner's gradient sum) stall and abort the process.
 CPU_DEVICES_PER_CORE = 8
@@ -143,7 +153,7 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument("--x64", action="store_true", help="simulate in float64 (default float32)")
     mc.add_argument("--cpu-devices", type=_cpu_devices, default=None, help=_CPU_DEVICES_HELP)
     mc.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() first (multi-host; see the README)")
-    mc.add_argument("--coordinator", default=None, help="with --distributed: coordinator host:port (default: detected, e.g. SLURM or Open MPI)")
+    mc.add_argument("--coordinator", type=_host_port, default=None, help="with --distributed: coordinator host:port (default: detected, e.g. SLURM or Open MPI)")
     mc.add_argument("--num-processes", type=_positive_int, default=None, help="with --distributed: number of processes")
     mc.add_argument("--process-id", type=int, default=None, help="with --distributed: this process's index, 0-based")
     # A negative number in exponent form is a value ("--k -1e3"), not an unknown option:
@@ -151,6 +161,8 @@ def _parser() -> argparse.ArgumentParser:
     # is its pattern from 3.13 on. No option here starts with "-" and a digit.
     for each in (parser, *sub.choices.values()):
         each._negative_number_matcher = re.compile(r"-\.?\d")
+    for command_parser in sub.choices.values():  # so that main reports an unknown option with its command's usage
+        command_parser.set_defaults(command_parser=command_parser)
     return parser
 
 
@@ -209,7 +221,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     traceback), 130 when interrupted (Ctrl-C) and 143 when terminated (SIGTERM, handled as
     Ctrl-C is while ``main`` runs in the main thread).
     """
-    args = _parser().parse_args(argv)
+    args, unknown = _parser().parse_known_args(argv)
+    if unknown:  # argparse would report it with the top-level usage, which lists no command's options
+        args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     out = getattr(args, "out", None)
     new_out = bool(out) and not os.path.lexists(out)
     handles_signals = threading.current_thread() is threading.main_thread()  # signal.signal works there only
@@ -457,10 +471,16 @@ def _montecarlo(args: argparse.Namespace) -> int:
         raise ValueError(f"{', '.join(given)} only appl{'ies' if len(given) == 1 else 'y'} with --distributed")
     if args.process_id is not None and args.process_id < 0:
         raise ValueError(f"--process-id must be an integer >= 0; got {args.process_id}")
+    if args.process_id is not None and args.num_processes is not None and args.process_id >= args.num_processes:
+        raise ValueError(f"--process-id must be below --num-processes ({args.num_processes}): 0 to {args.num_processes - 1}; got {args.process_id}")
     if args.distributed:
         import jax
 
-        jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id)
+        try:
+            jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id)
+        except ValueError as err:  # JAX's words name its own arguments, not the options
+            raise ValueError(f"--distributed: {err} Pass --coordinator HOST:PORT, --num-processes and --process-id, or run under a cluster "
+                             "JAX detects (SLURM, Open MPI)") from None
     from jaxflex.beam import params_from_mapping
     from jaxflex.montecarlo import MCConfig, run_montecarlo
     from jaxflex.report import format_value, load_tuned

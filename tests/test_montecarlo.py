@@ -493,6 +493,34 @@ def test_cli_distributed_options_are_checked_before_anything_runs(tmp_path, caps
     assert "--process-id must be an integer >= 0; got -1" in capsys.readouterr().err
     assert cli.main(["montecarlo", "--process-id", "0", "--out", str(tmp_path / "o")]) == 2
     assert "--process-id only applies with --distributed" in capsys.readouterr().err
+    out = str(tmp_path / "o")
+    assert cli.main(["montecarlo", "--distributed", "--num-processes", "2", "--process-id", "2", "--out", out]) == 2
+    assert "--process-id must be below --num-processes (2): 0 to 1; got 2" in capsys.readouterr().err
+    # JAX took "localhost" to an IndexError and "localhost:abc" to a gRPC abort of the process
+    for bad in ("localhost", "localhost:abc", "localhost:0", "localhost:65536", ":1234", "::1:1234", "[::1]"):
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main(["montecarlo", "--distributed", "--coordinator", bad, "--num-processes", "1", "--process-id", "0", "--out", out])
+        assert exit_info.value.code == 2
+        assert f"argument --coordinator: expected HOST:PORT with a port from 1 to 65535 (an IPv6 host in brackets: [::1]:1234); got {bad!r}" in capsys.readouterr().err
+    for good in ("localhost:1234", "10.0.0.1:65535", "[::1]:1"):
+        assert cli._parser().parse_args(["montecarlo", "--coordinator", good]).coordinator == good
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_distributed_failure_names_the_options(tmp_path, monkeypatch, capsys):
+    """JAX's own refusal names its arguments (coordinator_address); the message says which
+    options to pass."""
+    import jax
+
+    from jaxflex import cli
+
+    def initialize(**kwargs):
+        raise ValueError("coordinator_address should be defined.")
+
+    monkeypatch.setattr(jax.distributed, "initialize", initialize)
+    assert cli.main(["montecarlo", "--distributed", "--out", str(tmp_path / "o")]) == 2
+    assert ("jaxflex montecarlo: error: --distributed: coordinator_address should be defined. Pass --coordinator HOST:PORT, "
+            "--num-processes and --process-id, or run under a cluster JAX detects (SLURM, Open MPI)") in capsys.readouterr().err
 
 
 def test_model_line_counts_the_modes_above_nyquist():

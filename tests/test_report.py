@@ -445,6 +445,16 @@ def test_version_is_one_value_the_cli_and_the_installed_package_report(capsys):
     assert 'dynamic = ["version"]' in pyproject and "\nversion =" not in pyproject.split("[tool.setuptools.dynamic]")[0]
 
 
+def test_an_unknown_option_is_reported_with_its_commands_usage(capsys):
+    """argparse reported it with the top-level usage, which lists no command's options."""
+    for command in ("tune", "reproduce"):
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main([command, "--bogus", "3"])
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"usage: jaxflex {command} [-h]") and err.endswith(f"jaxflex {command}: error: unrecognized arguments: --bogus 3\n")
+
+
 def test_readme_quick_start_matches_ci():
     readme = (ROOT / "README.md").read_text()
     quick_start = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
