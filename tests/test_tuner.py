@@ -896,3 +896,18 @@ def test_tuning_sharded_over_devices_equals_one_device(tmp_path):
     mixed = json.loads((tmp_path / "d2" / "tuned.json").read_text())
     assert mixed["steps_run"] == 4 and mixed["devices"] == 1
     assert mixed["devices_from_step"] == [{"from_step": 0, "devices": 2}, {"from_step": 3, "devices": 1}]
+
+
+def test_reported_spectral_radius_is_float64_in_a_float32_run(tmp_path):
+    """tuned.json's sampled-loop radius is computed in float64 as `jaxflex stability`'s is,
+    whatever the run's dtype: the float32 loop matrix moved the paper's 0.99065454 to
+    0.99065495, and tune and stability then disagreed in the 7th digit."""
+    with jax.enable_x64(False):
+        state = tune(TuneConfig(controller="dfs", steps=1, eval_every=1, **SHARED), tmp_path, progress=False)
+        assert jax.tree.leaves(state["best_raw"])[0].dtype == jnp.float32  # the run itself is float32
+        st = summarize(state)["stability"]
+    with jax.enable_x64(True):
+        plant = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")  # TuneConfig's default method
+        paper = float(stability.spectral_radius(plant, 55.0, 5))  # the paper's k = 55, tau = 5 ms
+    assert 0.99 < paper < 0.991
+    assert st["paper_spectral_radius"] == pytest.approx(paper, rel=1e-9, abs=0)
