@@ -86,6 +86,26 @@ def _use_cpu_devices(count: int | None) -> None:
             raise ValueError(f"--cpu-devices {count}: JAX already runs in this process with {running} CPU device(s); pass it before JAX's first computation") from None
 
 
+# The library's name of the parameter each option sets, by command (the option's argparse
+# dest beside it): a refusal of a value typed as an option names the option, where the
+# library's message names its own parameter. Only options given are renamed: the same
+# parameter may come from --config, under the library's name.
+_LIBRARY_NAMES = {
+    "stability": {"k": "k", "tau_s": "tau", "tau_max_s": "tau_max", "dt": "dt", "n_modes": "modes"},
+    "tune": {"learning_rate": "lr", "n_scenarios": "scenarios", "n_heldout": "heldout", "steps": "steps", "seed": "seed"},
+    "montecarlo": {"n_scenarios": "scenarios", "chunk": "chunk", "seed": "seed"},
+}
+
+
+def _name_the_option(args: argparse.Namespace, message: str) -> str:
+    """``message`` with a leading library parameter name replaced by the option that set it
+    (``learning_rate must be ...`` -> ``--lr must be ...``), when that option was given."""
+    for name, dest in _LIBRARY_NAMES.get(args.command, {}).items():
+        if message.startswith(name + " ") and getattr(args, dest, None) is not None:
+            return "--" + dest.replace("_", "-") + message[len(name):]
+    return message
+
+
 def _parser() -> argparse.ArgumentParser:
     from jaxflex import __version__
 
@@ -117,6 +137,7 @@ def _parser() -> argparse.ArgumentParser:
     stab.add_argument("--tau", type=float, default=None, help="DFS delay (s), a whole number of samples of dt (default 0.005, the paper's)")
     stab.add_argument("--modes", type=_positive_int, default=None, help="number of assumed modes (default: the config's n_modes, else 2)")
     stab.add_argument("--dt", type=float, default=None, help="sample time of the sampled loop (s; default: the config's [scenarios] dt, else 0.001)")
+    stab.add_argument("--tau-max", type=float, default=None, help="largest delay of the (k, tau) chart (s), from --tau to 160 samples of dt (default: the largest of 8 tau, 40 ms and 20 samples, 40 ms capped at 160 samples)")
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
     stab.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the arm (default the paper's), its n_modes and [scenarios] dt the defaults of --modes and --dt; a top-level key neither tune nor montecarlo accepts is refused, the other keys are not read")
     stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
@@ -237,7 +258,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _raise_pending()  # one dropped after the runs' last check: their files are complete, but the user asked to stop
         return status
     except (ValueError, OSError) as err:
-        print(f"jaxflex {args.command}: error: {err}", file=sys.stderr)
+        print(f"jaxflex {args.command}: error: {_name_the_option(args, str(err))}", file=sys.stderr)
         return 2
     except RuntimeError as err:  # jax.errors.JaxRuntimeError, a RuntimeError
         if "RESOURCE_EXHAUSTED" not in str(err):
@@ -654,7 +675,7 @@ def _stability(args: argparse.Namespace) -> int:
             delay_steps_of(args.tau, dt)
         except ValueError:
             raise ValueError(f"--tau: its default, the paper's 0.005 s, is {args.tau / dt:g} samples of dt = {dt:g} s; pass --tau, a whole number of samples of dt") from None
-    result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+    result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, tau_max_s=args.tau_max, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     first, sampled = result["first_destabilising_delay_s"], result["first_destabilising_delay_sampled_s"]
     rk4 = result["spectral_radius_rk4"]
     arm_name = f"the arm of {args.config}" if values.get("beam") else "the paper's arm"

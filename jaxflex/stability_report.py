@@ -58,7 +58,7 @@ def run(
         torque) or ``"rk4"`` (the paper's integrator); the other is reported alongside.
       k_range: (k_lo, k_hi) of the chart; default ``[0, 3 k]`` (``[3 k, 0]`` for k < 0,
         ``[0, 150]`` for k = 0).
-      tau_max_s: largest delay of the chart (s), at most 160 samples of dt (its sampled-loop
+      tau_max_s: largest delay of the chart (s), from ``tau_s`` to 160 samples of dt (its sampled-loop
         matrices grow with it); default ``max(8 tau, min(40 ms, 160 dt), 20 dt)``, so
         ``tau_s`` up to ``20 dt`` (20 ms at 1 kHz).
       n_k: chart columns (>= 2).
@@ -88,6 +88,8 @@ def run(
     # The default's 40 ms floor is capped at the chart's limit (it alone is 400 samples at dt = 0.1 ms).
     floor = min(0.04, _MAX_CHART_SAMPLES * dt)
     tau_max = max(8 * tau, floor, 20 * dt) if tau_max_s is None else check_finite_scalar("tau_max_s", tau_max_s, positive=True)
+    if tau_max < tau:
+        raise ValueError(f"tau_max_s must be at least tau_s = {tau:g} s, so that the chart holds the point analysed; got {tau_max:g} s")
     d_max = int(math.floor(tau_max / dt + 1e-9))
     if d_max < 2:
         raise ValueError(f"tau_max_s must cover at least 2 samples of dt = {dt:g} s; got {tau_max:g} s")

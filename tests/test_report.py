@@ -455,6 +455,25 @@ def test_an_unknown_option_is_reported_with_its_commands_usage(capsys):
         assert err.startswith(f"usage: jaxflex {command} [-h]") and err.endswith(f"jaxflex {command}: error: unrecognized arguments: --bogus 3\n")
 
 
+def test_a_refused_option_is_named_as_typed(tmp_path, capsys):
+    """The library names its parameter (learning_rate, tau_s); a value typed as an option is
+    refused under the option's name, and one read from --config keeps the library's name."""
+    cases = [
+        (["tune", "--lr", "nan"], "jaxflex tune: error: --lr must be a finite number > 0; got nan"),
+        (["stability", "--k", "nan"], "jaxflex stability: error: --k must be finite; got nan"),
+        (["stability", "--tau", "0.0055"], "jaxflex stability: error: --tau must be a whole number >= 1 of samples of dt = 0.001 s; got 0.0055 s (5.5 samples)"),
+        (["stability", "--tau-max", "0.002"], "jaxflex stability: error: --tau-max must be at least tau_s = 0.005 s, so that the chart holds the point analysed; got 0.002 s"),
+    ]
+    for argv, said in cases:
+        assert cli.main([*argv, "--out", str(tmp_path / "o")]) == 2
+        assert said + "\n" == capsys.readouterr().err.splitlines(keepends=True)[-1]  # after the model line, where one is printed
+    config = tmp_path / "lr.toml"
+    config.write_text("learning_rate = -1.0\n")
+    assert cli.main(["tune", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err.splitlines()[-1] == "jaxflex tune: error: learning_rate must be a finite number > 0; got -1.0"
+    assert not (tmp_path / "o").exists()
+
+
 def test_readme_quick_start_matches_ci():
     readme = (ROOT / "README.md").read_text()
     quick_start = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]

@@ -478,7 +478,28 @@ def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
         stability_report.run(tmp_path, tau_s=1.0)
     with pytest.raises(ValueError, match="tau_max_s = 0.5 s is 500 samples"):
         stability_report.run(tmp_path, tau_max_s=0.5)
+    # a chart that would not hold the point analysed (its star off the top)
+    with pytest.raises(ValueError, match=r"tau_max_s must be at least tau_s = 0.005 s, so that the chart holds the point analysed; got 0.004 s"):
+        stability_report.run(tmp_path, tau_max_s=0.004)
     assert not list(tmp_path.iterdir())
+
+
+def test_cli_tau_max_sets_the_chart_range(tmp_path, monkeypatch):
+    """`--tau-max` reaches the chart (by default 1-40 ms whatever the delay, so that a 1 ms
+    delay filled the bottom eighth of it)."""
+    from jaxflex import cli
+
+    seen = {}
+
+    def run(out_dir, **kwargs):
+        seen.update(kwargs)
+        raise ValueError("stop")
+
+    monkeypatch.setattr(stability_report, "run", run)
+    assert cli.main(["stability", "--tau", "0.001", "--tau-max", "0.008", "--out", str(tmp_path / "o")]) == 2
+    assert seen["tau_s"] == 0.001 and seen["tau_max_s"] == 0.008
+    assert cli.main(["stability", "--out", str(tmp_path / "o")]) == 2
+    assert seen["tau_max_s"] is None  # the report's default range
 
 
 def test_default_chart_range_fits_the_limit_at_a_fine_sample_time(tmp_path):
