@@ -400,7 +400,7 @@ def _reproduce_summary(results: dict) -> str:
         return ", ".join(format_value(x, ".1f") for x in xs)
 
     def modes(count: int) -> str:
-        return ", ".join(str(i + 1) for i in range(count))
+        return "mode 1" if count == 1 else "modes " + ", ".join(str(i + 1) for i in range(count))
 
     freqs = ", ".join(f"{f:.2f}" for f in results["model"]["natural_frequencies_hz"])
     paper_freqs = ", ".join(f"{f:g}" for f in PAPER["natural_frequencies_hz"])
@@ -410,8 +410,8 @@ def _reproduce_summary(results: dict) -> str:
     paper = "; ".join(f"{name} {values(PAPER[run]['reduction_db'])}" for run, name in names.items())
     return (
         f"model natural frequencies: {freqs} Hz (paper: {paper_freqs} Hz)\n"
-        f"vibration reduction (dB, {results['psd']['name']}) at modes {modes(len(db['dfs']))}: {ours} "
-        f"(paper, modes {modes(len(PAPER['dfs']['reduction_db']))}: {paper})"
+        f"vibration reduction (dB, {results['psd']['name']}) at {modes(len(db['dfs']))}: {ours} "
+        f"(paper, {modes(len(PAPER['dfs']['reduction_db']))}: {paper})"
     )
 
 

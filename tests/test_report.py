@@ -504,7 +504,7 @@ def test_reproduce_prints_rounded_figures_beside_the_papers(reproduced):
 def test_reproduce_summary_of_one_mode_and_a_diverged_run():
     res = {"model": {"natural_frequencies_hz": [13.3]}, "psd": {"name": "hann-1024"}, "vibration_reduction_db": {"dfs": [60.06], "fuzzy": [None]}}
     db_line = cli._reproduce_summary(res).split("\n")[1]
-    assert db_line.startswith("vibration reduction (dB, hann-1024) at modes 1: DFS 60.1; fuzzy n/a (paper, modes 1, 2: ")
+    assert db_line.startswith("vibration reduction (dB, hann-1024) at mode 1: DFS 60.1; fuzzy n/a (paper, modes 1, 2: ")
 
 
 def test_cli_refuses_bad_outputs_before_any_work(tmp_path, capsys):
@@ -827,7 +827,7 @@ def test_report_says_by_estimator_where_dfs_is_ahead(reproduced):
     for name, (dfs_db, fuzzy_db) in zip(names, verdicts):
         tables[name] = {"dfs": dfs_db, "fuzzy": fuzzy_db}
     res["vibration_reduction_db"] = tables[names[0]]
-    expected = f"agrees with jaxflex's default estimator. DFS is ahead, by estimator: {names[0]} at modes 1, 2; {names[1]} at mode 1; {names[2]} at mode 2; {names[3]} at no mode."
+    expected = f"agrees with jaxflex's default estimator. Comparing modes 1-2 as the paper does, DFS is ahead, by estimator: {names[0]} at modes 1, 2; {names[1]} at mode 1; {names[2]} at mode 2; {names[3]} at no mode."
     assert expected in _report_md(res)
 
 
@@ -847,6 +847,19 @@ def test_report_tells_a_run_that_never_settled_and_a_third_mode(reproduced):
     assert "| DFS | settling time | 0.25 s | not settled | " in report
     assert "| DFS | 3 | - | 1.0 |" in report and "| PD-type fuzzy | 3 | - | 99.0 |" in report
     assert "than the fuzzy controller at both modes agrees with" in report
+    # the by-estimator sentence says which modes it compares: its "at no mode" read as if
+    # the table's third-mode rows, DFS ahead there in some model, were not there
+    assert "Comparing modes 1-2 as the paper does, DFS is ahead, by estimator: " in report
+    one = copy.deepcopy(res)
+    one["model"]["n_modes"] = 1
+    for key in ("natural_frequencies_hz", "exact_natural_frequencies_hz"):
+        one["model"][key] = one["model"][key][:1]
+    for table in (one["vibration_reduction_db"], one["vibration_reduction_db_q1"], *one["vibration_reduction_db_by_estimator"].values()):
+        for run in ("dfs", "fuzzy"):
+            table[run] = table[run][:1]
+    one_report = _report_md(one)
+    assert "| 2 | 55 | n/a | " in one_report and "| not in the 1-mode model |" in one_report  # it said "differs"
+    assert "Comparing mode 1 as the paper does, DFS is ahead, by estimator: " in one_report
     res["model"]["natural_frequencies_hz"].append(65.09)
     assert cli._reproduce_summary(res).split("\n")[0].startswith(f"model natural frequencies: {res['model']['natural_frequencies_hz'][0]:.2f}, {res['model']['natural_frequencies_hz'][1]:.2f}, 65.09 Hz")
 
