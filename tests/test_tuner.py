@@ -410,14 +410,14 @@ def test_the_final_point_is_scored_and_may_be_kept(tmp_path, monkeypatch):
         made = []
 
         def __init__(self, total, initial, **kwargs):
-            self.total, self.initial, self.n = total, initial, initial
+            self.total, self.initial, self.n, self.postfix = total, initial, initial, None
             Bar.made.append(self)
 
         def update(self, n):
             self.n += n
 
         def set_postfix(self, **kwargs):
-            pass
+            self.postfix = kwargs
 
         def close(self):
             pass
@@ -433,6 +433,10 @@ def test_the_final_point_is_scored_and_may_be_kept(tmp_path, monkeypatch):
     assert [(h["step"], h.get("val_objective")) for h in longer["history"]] == [(0, 5.0), (1, None), (2, None), (3, 4.0), (4, None), (5, 3.0)]
     assert longer["best_step"] == 5 and "grad_norm" in longer["history"][3]
     assert [(bar.total, bar.initial, bar.n) for bar in Bar.made] == [(3, 1, 3), (5, 4, 5)]
+    # each bar ends on its final point's scores (it showed the step before's: best_val 5, a
+    # training loss of other parameters, beside a summary that said 4)
+    for bar, run in zip(Bar.made, (state, longer)):
+        assert bar.postfix == {"loss": f"{run['history'][-1]['loss']:.4g}", "best_val": f"{run['history'][-1]['val_objective']:.4g}"}
 
 
 def test_a_finished_run_resumed_with_more_steps_equals_the_longer_run(tmp_path):

@@ -440,9 +440,6 @@ def _tune_locked(
             at, n = state["raw"], state["step"]
             final = n == config.steps
             if final:
-                if bar is not None:
-                    bar.close()
-                    bar = None
                 value, aux = problem.evaluate(at, problem.train)
                 info = {"loss": value, **aux}
             else:
@@ -478,6 +475,10 @@ def _tune_locked(
                     state["stopped_early"] = state["bad_evals"] >= config.patience and not final
             history.append(row)
             if final:
+                if bar is not None:  # it ends on the final point's scores, not on the step before it
+                    bar.set_postfix(loss=f"{row['loss']:.4g}", best_val=f"{state['best_val']:.4g}")
+                    bar.close()
+                    bar = None
                 continue
             if progress and bar is None:
                 # opened after this process's first step, which compiled: timed with it, the
