@@ -225,14 +225,19 @@ def program() -> str:
 
 
 def changed_fields(before: Any, now: Mapping[str, Any]) -> str:
-    """What a refused resume names: ``"changed: seed, n_modes"``, the keys of ``now`` whose
-    values differ from those recorded in ``before`` (a folder's configuration, as read back),
-    a text value with both sides (``program: 'a' -> 'b'``), or ``"the configuration changed"``
-    when no key both share differs."""
-    before = before if isinstance(before, Mapping) else {}
-    changed = sorted(k for k in now if k in before and before[k] != now[k])
-    named = [f"{k}: {before[k]!r} -> {now[k]!r}" if isinstance(now[k], str) and isinstance(before[k], str) else k for k in changed]
-    return f"changed: {', '.join(named)}" if changed else "the configuration changed"
+    """What a refused resume names: ``"changed: seed: 0 -> 3, scenarios.horizon_s: 0.4 -> 0.5"``,
+    each key of ``now`` whose value differs from the one recorded in ``before`` (a folder's
+    configuration, as read back) with both values, nested tables by dotted path; or ``"the
+    configuration changed"`` when no key both share differs. A key one side lacks (a record
+    written by an older version) is no change named."""
+
+    def differences(before: Any, now: Any, path: str) -> list[str]:
+        if isinstance(before, Mapping) and isinstance(now, Mapping):
+            return [d for k in sorted(now) if k in before for d in differences(before[k], now[k], f"{path}{k}.")]
+        return [] if before == now else [f"{path[:-1]}: {before!r} -> {now!r}"]
+
+    named = differences(before if isinstance(before, Mapping) else {}, now, "")
+    return f"changed: {', '.join(named)}" if named else "the configuration changed"
 
 
 def write_json(path: str | os.PathLike, data: Any) -> None:

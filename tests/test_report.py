@@ -388,10 +388,14 @@ def test_digest_ignores_key_order_and_changed_fields_names_what_differs():
     assert fileio.digest(a) == fileio.digest(b) and re.fullmatch(r"[0-9a-f]{16}", fileio.digest(a))
     assert fileio.digest({**a, "seed": 1}) != fileio.digest(a)
     # a key the folder's record lacks (written by an older version) is no change named, nor a KeyError
-    assert fileio.changed_fields(a, {**b, "seed": 3, "new_option": 1}) == "changed: seed"
+    assert fileio.changed_fields(a, {**b, "seed": 3, "new_option": 1}) == "changed: seed: 0 -> 3"
     assert fileio.changed_fields(a, {**b, "new_option": 1}) == "the configuration changed"
     assert fileio.changed_fields(None, a) == "the configuration changed"
-    assert fileio.changed_fields({**a, "program": "x"}, {**a, "program": "y", "seed": 2}) == "changed: program: 'x' -> 'y', seed"
+    assert fileio.changed_fields({**a, "program": "x"}, {**a, "program": "y", "seed": 2}) == "changed: program: 'x' -> 'y', seed: 0 -> 2"
+    # each side of each change, into nested tables (it said "changed: n_scenarios, scenarios")
+    now = {**a, "scenarios": {"dt": 0.002, "horizon_s": 3.0, "new": 1}, "percentiles": [5, 95], "beam": None}
+    assert fileio.changed_fields({**a, "percentiles": [5, 50, 95], "beam": {"length_m": 1.0}}, now) == (
+        "changed: beam: {'length_m': 1.0} -> None, percentiles: [5, 50, 95] -> [5, 95], scenarios.dt: 0.001 -> 0.002")
 
 
 def test_to_jsonable_keeps_non_finite_numbers_when_asked():
