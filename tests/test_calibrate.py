@@ -298,3 +298,19 @@ def test_a_fit_that_does_not_converge_is_refused(monkeypatch):
     measured = np.asarray(natural_frequencies_hz(PAPER._replace(youngs_modulus_pa=80e9, hub_inertia_kg_m2=5e-4), 2))
     with pytest.raises(ValueError, match=r"the fit did not converge \(.*\); start from an arm closer to the measured one"):
         calibrate(measured, PAPER)
+
+
+def test_readme_tap_record_example_runs_as_written(tmp_path, monkeypatch, capsys):
+    """The README's calibrate --record example: its Python block writes tap.csv, and the
+    command then prints the lines the README shows (it named a tap.csv nothing made)."""
+    import pathlib
+
+    readme = (pathlib.Path(__file__).resolve().parent.parent / "README.md").read_text()
+    section = readme.split("Here `tap.csv` is simulated", 1)[1]
+    script = section.split("```python\n", 1)[1].split("```", 1)[0]
+    shown = section.split("$ jaxflex calibrate --record tap.csv --start 0.02 --out cal\n", 1)[1].split("```", 1)[0].splitlines()
+    monkeypatch.chdir(tmp_path)
+    exec(compile(script, "README.md", "exec"), {})
+    assert cli.main(["calibrate", "--record", "tap.csv", "--start", "0.02", "--out", "cal"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[:4] == shown[:4] and shown[4] == "..."
