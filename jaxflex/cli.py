@@ -355,6 +355,8 @@ def _run(args: argparse.Namespace) -> int:
         results = reproduce(args.out, n_modes=args.modes, progress=progress, params_file=args.params)
         print(_reproduce_summary(results))
         tuned = results.get("tuned")
+        if tuned:
+            print(_tuned_line(tuned))
         if tuned and tuned["tuned_for"]:
             model = results["model"]
             print(f"note: {args.params} was tuned for {', '.join(tuned['tuned_for'])}; its gains ran here on the paper's arm, {model['n_modes']} modes, {model['integrator'].upper()} at {model['dt_s'] * 1e3:g} ms (see report.md)")
@@ -387,6 +389,23 @@ def _check_out_file(option: str, path: str) -> None:
         raise ValueError(f"{option} must name a file; got {path!r}")
     if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
         raise ValueError(f"{option} {path!r}: its folder {folder} does not exist or is not writable")
+
+
+def _tuned_line(tuned: dict) -> str:
+    """What ``jaxflex reproduce --params`` adds to its printout: the tuned gains beside the
+    paper's, and the tip's settling time and ISE with each on the paper scenario."""
+    from jaxflex.report import format_value
+
+    def gains(params: dict) -> str:
+        return ", ".join(f"{name} = {value:.4g}" for name, value in params.items())
+
+    def tip(run: dict, what: str) -> str:
+        return format_value(run["tip_deflection_m"][what], ".3g") if not run["diverged"] else "n/a (diverged)"
+
+    runs = (("tuned", tuned["run"]), ("paper", tuned["paper_run"]))
+    return (f"tuned {tuned['controller']} ({tuned['file']}): {gains(tuned['params'])} (paper: {gains(tuned['paper_params'])}); "
+            f"tip settling {' s against '.join(tip(run, 'settling_time_s') for _, run in runs)} s, "
+            f"tip ISE {' against '.join(tip(run, 'ise') for _, run in runs)} m^2 s with the paper's gains")
 
 
 def _reproduce_summary(results: dict) -> str:

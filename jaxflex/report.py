@@ -480,10 +480,12 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf)), os.path.join(stage, "fig4_fuzzy_surface.png"))
 
         if tuned is not None:
-            pair = {"open_loop": sig["open_loop"], tuned.name: signals(paper_traj), f"tuned {tuned.name}": signals(ttraj)}
-            div[tuned.name] = tuned_results["paper_run"]["diverged"]
+            paper_gains = f"{plotting.LABELS[tuned.name]} (paper gains)"  # the legend said "DFS" beside "tuned dfs"
+            pair = {"open_loop": sig["open_loop"], paper_gains: signals(paper_traj), f"tuned {tuned.name}": signals(ttraj)}
+            div[paper_gains] = tuned_results["paper_run"]["diverged"]
             div[f"tuned {tuned.name}"] = tuned_results["run"]["diverged"]
-            plotting.save(plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned.name} ({os.path.basename(str(params_file))})"), os.path.join(stage, TUNED_FIGURE))
+            figure = plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned.name} ({os.path.basename(str(params_file))})", style_of={paper_gains: tuned.name})
+            plotting.save(figure, os.path.join(stage, TUNED_FIGURE))
 
         fileio.write_text(os.path.join(stage, "report.md"), _report_md(results))
         fileio.write_json(os.path.join(stage, "results.json"), results)

@@ -60,10 +60,12 @@ def test_a_run_looks_the_same_in_tune_and_reproduce_figures(controller):
 
     tune = looks(plotting.responses(t, {"paper gains": y, "tuned": y}, [("tip", "Tip (m)")], {}, "t", style_of={"paper gains": controller}))
     base = "dfs" if controller == "dfs" else "fuzzy"
-    repro = looks(plotting.responses(t, {"open_loop": y, base: y, f"tuned {controller}": y}, [("tip", "Tip (m)")], {}, "t"))
+    paper = f"{plotting.LABELS[controller]} (paper gains)"  # reproduce --params' legend
+    repro = looks(plotting.responses(t, {"open_loop": y, paper: y, f"tuned {controller}": y}, [("tip", "Tip (m)")], {}, "t", style_of={paper: controller}))
     assert tune["tuned"] == repro[f"tuned {controller}"]
-    if controller != "dfs+fuzzy":
-        assert tune["paper gains"] == repro[plotting.LABELS[base]]
+    assert tune["paper gains"] == repro[paper]
+    if controller != "dfs+fuzzy":  # the paper's own run of that controller looks the same
+        assert repro[paper] == looks(plotting.responses(t, {base: y}, [("tip", "Tip (m)")], {}, "t"))[plotting.LABELS[base]]
     assert len(set(tune.values())) == 2 and len(set(repro.values())) == 3
     psd = plotting.psds(t, {"paper gains": y["tip"], "tuned": y["tip"]}, (), "y", "t", style_of={"paper gains": controller})
     assert looks(psd) == tune

@@ -780,6 +780,11 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
             if isinstance(value, float):
                 np.testing.assert_allclose(ours[signal][key], value, rtol=1e-12, err_msg=f"{signal}.{key}")
     assert res["tuned"]["beam"]["length_m"] == 0.6
+    # the gains and their tip metrics on the console (they were in report.md only): here the
+    # paper's own gains, so both sides are the paper DFS run's
+    tip = paper["tip_deflection_m"]
+    assert (f"tuned dfs ({tuned}): k = 55, tau_s = 0.005 (paper: k = 55, tau_s = 0.005); tip settling {tip['settling_time_s']:.3g} s against "
+            f"{tip['settling_time_s']:.3g} s, tip ISE {tip['ise']:.3g} against {tip['ise']:.3g} m^2 s with the paper's gains") in printed.out
     report = (out / "report.md").read_text()
     assert "## Tuned gains (dfs) beside the paper's, on the paper scenario" in report
     assert re.search(rf"Command: `jaxflex reproduce --modes 2( --x64)? --params {re.escape(str(tuned))}`", report)  # the tests run in float64
