@@ -915,3 +915,13 @@ def test_reported_spectral_radius_is_float64_in_a_float32_run(tmp_path):
         paper = float(stability.spectral_radius(plant, 55.0, 5))  # the paper's k = 55, tau = 5 ms
     assert 0.99 < paper < 0.991
     assert st["paper_spectral_radius"] == pytest.approx(paper, rel=1e-9, abs=0)
+    # a tuned delay at the top of its range: float32's 0.064 s is 64.000003 samples of 1 ms,
+    # which the float64 radius refused after the whole run (no tuned.json)
+    with jax.enable_x64(False):
+        state = tune(TuneConfig(controller="dfs", steps=1, eval_every=1, capacity=64, **SHARED), tmp_path / "top", progress=False)
+        state["best_raw"] = {**state["best_raw"], "tau_z": jnp.float32(30.0)}
+        assert float(state["problem"].tc.to_physical(state["best_raw"]).tau_s) / 1e-3 > 64  # the case itself
+        st = summarize(state)["stability"]
+    with jax.enable_x64(True):
+        top = float(stability.spectral_radius(plant, float(jnp.exp(state["best_raw"]["log_k"])), 64))
+    assert st["spectral_radius"] == pytest.approx(top, rel=1e-6, abs=0)

@@ -545,7 +545,10 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
             nominal = discretize(make_plant(problem.beam, problem.config.n_modes), problem.dt, problem.config.method)
 
             def log_radius(p: DFSParams) -> float:
-                return math.log(float(stability.spectral_radius(nominal, float(p.k), float(p.tau_s) / problem.dt, problem.config.capacity)))
+                # A delay at an end of its range, rounded in the run's dtype, may come out a
+                # hair outside [1, capacity] samples (64.000003); it is that end.
+                delay = min(max(float(p.tau_s) / problem.dt, 1.0), problem.config.capacity)
+                return math.log(float(stability.spectral_radius(nominal, float(p.k), delay, problem.config.capacity)))
 
             log_rho = log_radius(dfs_params)
             paper_log_rho = log_radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0])
