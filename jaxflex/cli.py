@@ -32,8 +32,9 @@ def _host_port(text: str) -> str:
     """``--coordinator``'s HOST:PORT, checked before JAX sees it: JAX indexes past a missing
     port (an IndexError) and its gRPC server aborts the process on a port that is not a number."""
     host, sep, port = text.rpartition(":")
-    bracketed = host.startswith("[") and host.endswith("]") and len(host) > 2
-    if not sep or not host or ":" in host and not bracketed or not port.isdigit() or not 1 <= int(port) <= 65535:
+    bracketed = host.startswith("[") and host.endswith("]")
+    well_formed = ":" in host[1:-1] if bracketed else (host != "" and ":" not in host and "[" not in host and "]" not in host)
+    if not sep or not well_formed or any(c.isspace() for c in host) or not (port.isascii() and port.isdigit()) or not 1 <= int(port) <= 65535:
         raise argparse.ArgumentTypeError(f"expected HOST:PORT with a port from 1 to 65535 (an IPv6 host in brackets: [::1]:1234); got {text!r}")
     return text
 
@@ -86,24 +87,21 @@ def _use_cpu_devices(count: int | None) -> None:
             raise ValueError(f"--cpu-devices {count}: JAX already runs in this process with {running} CPU device(s); pass it before JAX's first computation") from None
 
 
-# The library's name of the parameter each option sets, by command (the option's argparse
-# dest beside it): a refusal of a value typed as an option names the option, where the
-# library's message names its own parameter. Only options given are renamed: the same
-# parameter may come from --config, under the library's name.
-_LIBRARY_NAMES = {
-    "stability": {"k": "k", "tau_s": "tau", "tau_max_s": "tau_max", "dt": "dt", "n_modes": "modes"},
-    "tune": {"learning_rate": "lr", "n_scenarios": "scenarios", "n_heldout": "heldout", "steps": "steps", "seed": "seed"},
-    "montecarlo": {"n_scenarios": "scenarios", "chunk": "chunk", "seed": "seed"},
-}
-
-
-def _name_the_option(args: argparse.Namespace, message: str) -> str:
-    """``message`` with a leading library parameter name replaced by the option that set it
-    (``learning_rate must be ...`` -> ``--lr must be ...``), when that option was given."""
-    for name, dest in _LIBRARY_NAMES.get(args.command, {}).items():
-        if message.startswith(name + " ") and getattr(args, dest, None) is not None:
-            return "--" + dest.replace("_", "-") + message[len(name):]
-    return message
+@contextlib.contextmanager
+def _as_typed(options: dict[str, str | None]):
+    """Within: a refusal whose message starts with one of the library's parameter names in
+    ``options`` names the option that was typed for it instead (``learning_rate must ...`` ->
+    ``--lr must ...``). ``options`` maps a name to its option, or to None where the value did
+    not come from an option (a default, --config), whose refusal keeps the library's name.
+    Wrap only the call that takes those values."""
+    try:
+        yield
+    except ValueError as err:
+        message = str(err)
+        for name, option in options.items():
+            if option is not None and message.startswith(name + " "):
+                raise ValueError(option + message[len(name):]) from None
+        raise
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -180,10 +178,10 @@ def _parser() -> argparse.ArgumentParser:
     # A negative number in exponent form is a value ("--k -1e3"), not an unknown option:
     # argparse before Python 3.13 knew only -1 and -1.5 ("--k: expected one argument"); this
     # is its pattern from 3.13 on. No option here starts with "-" and a digit.
-    for each in (parser, *sub.choices.values()):
-        each._negative_number_matcher = re.compile(r"-\.?\d")
-    for command_parser in sub.choices.values():  # so that main reports an unknown option with its command's usage
-        command_parser.set_defaults(command_parser=command_parser)
+    parser._negative_number_matcher = re.compile(r"-\.?\d")
+    for command_parser in sub.choices.values():
+        command_parser._negative_number_matcher = re.compile(r"-\.?\d")
+        command_parser.set_defaults(command_parser=command_parser)  # main reports an unknown option with its command's usage
     return parser
 
 
@@ -258,7 +256,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _raise_pending()  # one dropped after the runs' last check: their files are complete, but the user asked to stop
         return status
     except (ValueError, OSError) as err:
-        print(f"jaxflex {args.command}: error: {_name_the_option(args, str(err))}", file=sys.stderr)
+        print(f"jaxflex {args.command}: error: {err}", file=sys.stderr)
         return 2
     except RuntimeError as err:  # jax.errors.JaxRuntimeError, a RuntimeError
         if "RESOURCE_EXHAUSTED" not in str(err):
@@ -392,20 +390,13 @@ def _check_out_file(option: str, path: str) -> None:
 
 
 def _tuned_line(tuned: dict) -> str:
-    """What ``jaxflex reproduce --params`` adds to its printout: the tuned gains beside the
-    paper's, and the tip's settling time and ISE with each on the paper scenario."""
-    from jaxflex.report import format_value
+    """What ``jaxflex reproduce --params`` adds to its printout: report.md's comparison of the
+    tuned gains with the paper's (``report.tuned_comparison``) on one line."""
+    from jaxflex.report import tuned_comparison
 
-    def gains(params: dict) -> str:
-        return ", ".join(f"{name} = {value:.4g}" for name, value in params.items())
-
-    def tip(run: dict, what: str) -> str:
-        return format_value(run["tip_deflection_m"][what], ".3g") if not run["diverged"] else "n/a (diverged)"
-
-    runs = (("tuned", tuned["run"]), ("paper", tuned["paper_run"]))
-    return (f"tuned {tuned['controller']} ({tuned['file']}): {gains(tuned['params'])} (paper: {gains(tuned['paper_params'])}); "
-            f"tip settling {' s against '.join(tip(run, 'settling_time_s') for _, run in runs)} s, "
-            f"tip ISE {' against '.join(tip(run, 'ise') for _, run in runs)} m^2 s with the paper's gains")
+    paper, ours = tuned_comparison(tuned)
+    return (f"tuned {tuned['controller']} ({tuned['file']}): {ours[1]} (paper: {paper[1]}); "
+            f"q1 settling {ours[2]} against {paper[2]}, tip ISE {ours[4]} against {paper[4]} (m^2 s) with the paper's gains")
 
 
 def _reproduce_summary(results: dict) -> str:
@@ -470,15 +461,16 @@ def _tune(args: argparse.Namespace) -> int:
     from tuning.tuner import TuneConfig
 
     values = fileio.read_toml(args.config) if args.config else {}
-    config = TuneConfig.from_mapping(
-        values,
-        controller=args.controller,
-        n_scenarios=args.scenarios,
-        n_heldout=args.heldout,
-        steps=args.steps,
-        seed=args.seed,
-        learning_rate=args.lr,
-    )
+    with _as_typed({"learning_rate": "--lr" if args.lr is not None else None}):
+        config = TuneConfig.from_mapping(
+            values,
+            controller=args.controller,
+            n_scenarios=args.scenarios,
+            n_heldout=args.heldout,
+            steps=args.steps,
+            seed=args.seed,
+            learning_rate=args.lr,
+        )
     print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
     summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress, on_step=_raise_pending)
     obj = summary["objective"]
@@ -688,13 +680,16 @@ def _stability(args: argparse.Namespace) -> int:
     n_modes = args.modes if args.modes is not None else config_modes or 2
     dt = args.dt if args.dt is not None else scenarios.dt
     print(_model_line(arm, n_modes, dt), file=sys.stderr)
+    typed = {"k": "--k", "tau_s": "--tau" if args.tau is not None else None, "tau_max_s": "--tau-max" if args.tau_max is not None else None,
+             "dt": "--dt" if args.dt is not None else None, "n_modes": "--modes" if args.modes is not None else None}
     if args.tau is None:
         args.tau = 0.005
         try:
             delay_steps_of(args.tau, dt)
         except ValueError:
             raise ValueError(f"--tau: its default, the paper's 0.005 s, is {args.tau / dt:g} samples of dt = {dt:g} s; pass --tau, a whole number of samples of dt") from None
-    result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, tau_max_s=args.tau_max, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+    with _as_typed(typed):
+        result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, tau_max_s=args.tau_max, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     first, sampled = result["first_destabilising_delay_s"], result["first_destabilising_delay_sampled_s"]
     rk4 = result["spectral_radius_rk4"]
     arm_name = f"the arm of {args.config}" if values.get("beam") else "the paper's arm"

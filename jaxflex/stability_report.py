@@ -89,14 +89,15 @@ def run(
     floor = min(0.04, _MAX_CHART_SAMPLES * dt)
     tau_max = max(8 * tau, floor, 20 * dt) if tau_max_s is None else check_finite_scalar("tau_max_s", tau_max_s, positive=True)
     if tau_max < tau:
-        raise ValueError(f"tau_max_s must be at least tau_s = {tau:g} s, so that the chart holds the point analysed; got {tau_max:g} s")
+        raise ValueError(f"tau_max_s must be at least the delay analysed, tau_s = {tau:g} s, so that the chart holds that point; got {tau_max:g} s")
     d_max = int(math.floor(tau_max / dt + 1e-9))
     if d_max < 2:
         raise ValueError(f"tau_max_s must cover at least 2 samples of dt = {dt:g} s; got {tau_max:g} s")
     if d_max > _MAX_CHART_SAMPLES:
         raise ValueError(
             f"the chart's delay range tau_max_s = {tau_max:g} s is {d_max} samples of dt = {dt:g} s; at most "
-            f"{_MAX_CHART_SAMPLES} are supported (default tau_max_s = 8 tau_s, so tau_s <= {_MAX_CHART_SAMPLES * dt / 8:g} s)"
+            f"{_MAX_CHART_SAMPLES} are supported: pass tau_max_s (jaxflex stability --tau-max) from tau_s to {_MAX_CHART_SAMPLES * dt:g} s "
+            f"(its default, the largest of 8 tau_s, 40 ms and 20 samples, holds tau_s <= {_MAX_CHART_SAMPLES * dt / 8:g} s)"
         )
     n_tau = min(d_max, _MAX_N_TAU) if n_tau is None else min(checks.integer("n_tau", n_tau, 2), d_max)
     delay_grid = np.unique(np.round(np.linspace(1, d_max, n_tau)).astype(np.int64))

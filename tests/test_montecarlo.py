@@ -497,12 +497,12 @@ def test_cli_distributed_options_are_checked_before_anything_runs(tmp_path, caps
     assert cli.main(["montecarlo", "--distributed", "--num-processes", "2", "--process-id", "2", "--out", out]) == 2
     assert "--process-id must be below --num-processes (2): 0 to 1; got 2" in capsys.readouterr().err
     # JAX took "localhost" to an IndexError and "localhost:abc" to a gRPC abort of the process
-    for bad in ("localhost", "localhost:abc", "localhost:0", "localhost:65536", ":1234", "::1:1234", "[::1]"):
+    for bad in ("localhost", "localhost:abc", "localhost:0", "localhost:65536", ":1234", "::1:1234", "[::1]", "[]:80", "[x]:80", "a b:80", "localhost:\u00b2"):
         with pytest.raises(SystemExit) as exit_info:
             cli.main(["montecarlo", "--distributed", "--coordinator", bad, "--num-processes", "1", "--process-id", "0", "--out", out])
         assert exit_info.value.code == 2
         assert f"argument --coordinator: expected HOST:PORT with a port from 1 to 65535 (an IPv6 host in brackets: [::1]:1234); got {bad!r}" in capsys.readouterr().err
-    for good in ("localhost:1234", "10.0.0.1:65535", "[::1]:1"):
+    for good in ("localhost:1234", "10.0.0.1:65535", "[::1]:1", "[fe80::1]:8476", "node-7.cluster:29500"):
         assert cli._parser().parse_args(["montecarlo", "--coordinator", good]).coordinator == good
     assert not (tmp_path / "o").exists()
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxflex import beam, cli, fileio
+from jaxflex import beam, cli, fileio, plotting
 from jaxflex.report import FIGURES, reproduce
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -466,7 +466,7 @@ def test_a_refused_option_is_named_as_typed(tmp_path, capsys):
         (["tune", "--lr", "nan"], "jaxflex tune: error: --lr must be a finite number > 0; got nan"),
         (["stability", "--k", "nan"], "jaxflex stability: error: --k must be finite; got nan"),
         (["stability", "--tau", "0.0055"], "jaxflex stability: error: --tau must be a whole number >= 1 of samples of dt = 0.001 s; got 0.0055 s (5.5 samples)"),
-        (["stability", "--tau-max", "0.002"], "jaxflex stability: error: --tau-max must be at least tau_s = 0.005 s, so that the chart holds the point analysed; got 0.002 s"),
+        (["stability", "--tau-max", "0.002"], "jaxflex stability: error: --tau-max must be at least the delay analysed, tau_s = 0.005 s, so that the chart holds that point; got 0.002 s"),
     ]
     for argv, said in cases:
         assert cli.main([*argv, "--out", str(tmp_path / "o")]) == 2
@@ -475,6 +475,14 @@ def test_a_refused_option_is_named_as_typed(tmp_path, capsys):
     config.write_text("learning_rate = -1.0\n")
     assert cli.main(["tune", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
     assert capsys.readouterr().err.splitlines()[-1] == "jaxflex tune: error: learning_rate must be a finite number > 0; got -1.0"
+    # a value from --config beside a typed option of the same name is not blamed on the option
+    for text, argv, said in (
+        ("[scenarios]\ndt = -1.0\n", ["--dt", "0.001"], "error: dt must be a finite number > 0; got -1.0"),
+        ("n_modes = 0\n", ["--modes", "2"], f"error: n_modes of {config} must be an integer >= 1; got 0"),
+    ):
+        config.write_text(text)
+        assert cli.main(["stability", "--config", str(config), *argv, "--out", str(tmp_path / "o")]) == 2
+        assert capsys.readouterr().err.splitlines()[-1] == f"jaxflex stability: {said}"
     assert not (tmp_path / "o").exists()
 
 
@@ -759,7 +767,7 @@ def test_cli_montecarlo_refuses_params_of_another_controller(tmp_path, capsys):
     assert not (tmp_path / "r").exists()
 
 
-def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
+def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys, monkeypatch):
     """`reproduce --params tuned.json`: tuned gains equal to the paper's give the paper's DFS run
     (a linear delay read at a whole number of samples is the nearest read), the table and the
     figure are written, and gains tuned for another arm say so."""
@@ -767,7 +775,16 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
     config = {"beam": {"length_m": 0.6, "rayleigh_alpha": None}, "n_modes": 3, "method": "zoh", "scenarios": {"dt": 5e-4}}
     tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 55.0, "tau_s": 0.005}, "config": config}))
     out = tmp_path / "o"
+    drawn, responses = [], plotting.responses
+
+    def recorded(t, runs, *args, **kwargs):
+        drawn.append((list(runs), kwargs.get("style_of")))
+        return responses(t, runs, *args, **kwargs)
+
+    monkeypatch.setattr(plotting, "responses", recorded)
     assert cli.main(["reproduce", "--out", str(out), "--params", str(tuned)]) == 0
+    # the tuned figure's legend: "DFS (paper gains)" in DFS's look (it read "DFS" beside "tuned dfs")
+    assert drawn[-1] == (["open_loop", "DFS (paper gains)", "tuned dfs"], {"DFS (paper gains)": "dfs"})
     tuned_for = "another arm (length_m = 0.6), 3 modes (here 2), dt = 0.0005 s (here 0.001 s), method = 'zoh' (here 'rk4')"
     # said on the console too, not only in one sentence of report.md
     printed = capsys.readouterr()
@@ -781,16 +798,30 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys):
             if isinstance(value, float):
                 np.testing.assert_allclose(ours[signal][key], value, rtol=1e-12, err_msg=f"{signal}.{key}")
     assert res["tuned"]["beam"]["length_m"] == 0.6
-    # the gains and their tip metrics on the console (they were in report.md only): here the
-    # paper's own gains, so both sides are the paper DFS run's
-    tip = paper["tip_deflection_m"]
-    assert (f"tuned dfs ({tuned}): k = 55, tau_s = 0.005 (paper: k = 55, tau_s = 0.005); tip settling {tip['settling_time_s']:.3g} s against "
-            f"{tip['settling_time_s']:.3g} s, tip ISE {tip['ise']:.3g} against {tip['ise']:.3g} m^2 s with the paper's gains") in printed.out
+    # report.md's comparison on the console too (see test_tuned_line_puts_each_side_in_its_place)
+    assert f"tuned dfs ({tuned}): k = 55, tau_s = 0.005 (paper: k = 55, tau_s = 0.005); q1 settling " in printed.out
     report = (out / "report.md").read_text()
     assert "## Tuned gains (dfs) beside the paper's, on the paper scenario" in report
     assert re.search(rf"Command: `jaxflex reproduce --modes 2( --x64)? --params {re.escape(str(tuned))}`", report)  # the tests run in float64
     assert f"These gains were tuned for {tuned_for}; they are shown here on the paper's arm, model and sampling." in report
     assert (out / "fig_tuned_response.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_tuned_line_puts_each_side_in_its_place():
+    """reproduce --params' printout: the tuned side first, the paper's second, a run that never
+    settled said so (format_value's n/a is a diverged run's), a diverged run "diverged"."""
+    from jaxflex.report import tuned_comparison
+
+    def run(settling, ise, diverged=False):
+        return {"diverged": diverged, "q1": {"settling_time_s": settling}, "tip_deflection_m": {"min": -1e-3, "max": 2e-3, "ise": ise}}
+
+    tuned = {"controller": "dfs", "file": "t.json", "params": {"k": 117.9, "tau_s": 0.0043}, "paper_params": {"k": 55.0, "tau_s": 0.005},
+             "run": run(math.inf, 6.5e-8), "paper_run": run(0.2321, 4.6e-8)}
+    assert cli._tuned_line(tuned) == ("tuned dfs (t.json): k = 117.9, tau_s = 0.0043 (paper: k = 55, tau_s = 0.005); "
+                                      "q1 settling not settled against 0.232 s, tip ISE 6.5e-08 against 4.6e-08 (m^2 s) with the paper's gains")
+    tuned["run"] = run(None, None, diverged=True)
+    assert "q1 settling diverged against 0.232 s, tip ISE diverged against 4.6e-08 (m^2 s)" in cli._tuned_line(tuned)
+    assert [row[0] for row in tuned_comparison(tuned)] == ["paper", "tuned"]
 
 
 def test_reproduce_with_dfs_fuzzy_params_compares_the_same_loop(tmp_path):
@@ -837,7 +868,7 @@ def test_report_says_by_estimator_where_dfs_is_ahead(reproduced):
     for name, (dfs_db, fuzzy_db) in zip(names, verdicts):
         tables[name] = {"dfs": dfs_db, "fuzzy": fuzzy_db}
     res["vibration_reduction_db"] = tables[names[0]]
-    expected = f"agrees with jaxflex's default estimator. Comparing modes 1-2 as the paper does, DFS is ahead, by estimator: {names[0]} at modes 1, 2; {names[1]} at mode 1; {names[2]} at mode 2; {names[3]} at no mode."
+    expected = f"agrees with jaxflex's default estimator. Comparing modes 1-2, as the paper does, DFS is ahead, by estimator: {names[0]} at modes 1, 2; {names[1]} at mode 1; {names[2]} at mode 2; {names[3]} at no mode."
     assert expected in _report_md(res)
 
 
@@ -859,7 +890,7 @@ def test_report_tells_a_run_that_never_settled_and_a_third_mode(reproduced):
     assert "than the fuzzy controller at both modes agrees with" in report
     # the by-estimator sentence says which modes it compares: its "at no mode" read as if
     # the table's third-mode rows, DFS ahead there in some model, were not there
-    assert "Comparing modes 1-2 as the paper does, DFS is ahead, by estimator: " in report
+    assert "Comparing modes 1-2, as the paper does, DFS is ahead, by estimator: " in report
     one = copy.deepcopy(res)
     one["model"]["n_modes"] = 1
     for key in ("natural_frequencies_hz", "exact_natural_frequencies_hz"):
@@ -869,7 +900,7 @@ def test_report_tells_a_run_that_never_settled_and_a_third_mode(reproduced):
             table[run] = table[run][:1]
     one_report = _report_md(one)
     assert "| 2 | 55 | n/a | " in one_report and "| not in the 1-mode model |" in one_report  # it said "differs"
-    assert "Comparing mode 1 as the paper does, DFS is ahead, by estimator: " in one_report
+    assert "Comparing mode 1 (the paper compares modes 1-2), DFS is ahead, by estimator: " in one_report
     res["model"]["natural_frequencies_hz"].append(65.09)
     assert cli._reproduce_summary(res).split("\n")[0].startswith(f"model natural frequencies: {res['model']['natural_frequencies_hz'][0]:.2f}, {res['model']['natural_frequencies_hz'][1]:.2f}, 65.09 Hz")
 

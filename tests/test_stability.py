@@ -474,19 +474,19 @@ def test_an_interrupted_report_leaves_the_earlier_pair_of_files(tmp_path, monkey
 def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
     """`jaxflex stability --tau 1` once ran out of memory after 40 s (8 s of delay samples per
     chart matrix); now it is refused at once, naming the range and the largest tau."""
-    with pytest.raises(ValueError, match=r"at most 160 are supported \(default tau_max_s = 8 tau_s, so tau_s <= 0.02 s\)"):
+    with pytest.raises(ValueError, match=r"at most 160 are supported: pass tau_max_s \(jaxflex stability --tau-max\) from tau_s to 0.16 s \(its default, the largest of 8 tau_s, 40 ms and 20 samples, holds tau_s <= 0.02 s\)"):
         stability_report.run(tmp_path, tau_s=1.0)
     with pytest.raises(ValueError, match="tau_max_s = 0.5 s is 500 samples"):
         stability_report.run(tmp_path, tau_max_s=0.5)
     # a chart that would not hold the point analysed (its star off the top)
-    with pytest.raises(ValueError, match=r"tau_max_s must be at least tau_s = 0.005 s, so that the chart holds the point analysed; got 0.004 s"):
+    with pytest.raises(ValueError, match=r"tau_max_s must be at least the delay analysed, tau_s = 0.005 s, so that the chart holds that point; got 0.004 s"):
         stability_report.run(tmp_path, tau_max_s=0.004)
     assert not list(tmp_path.iterdir())
 
 
 def test_cli_tau_max_sets_the_chart_range(tmp_path, monkeypatch):
-    """`--tau-max` reaches the chart (by default 1-40 ms whatever the delay, so that a 1 ms
-    delay filled the bottom eighth of it)."""
+    """`--tau-max` reaches the chart (by default 1-40 ms for any delay up to 5 ms: a 1 ms delay
+    sat at a fortieth of its height)."""
     from jaxflex import cli
 
     seen = {}
