@@ -596,7 +596,9 @@ def test_cli_tune_with_toml_config(tmp_path, capsys):
     assert saved["config"]["objective"]["cvar_level"] == 0.8 and saved["config"]["scenarios"]["horizon_s"] == 0.4
     assert saved["config"]["n_heldout"] == 12 and saved["config"]["n_scenarios"] == 24 and saved["steps_run"] == 4
     assert saved["dtype"] == "float64"  # the tests run under jax_enable_x64 (conftest.py)
-    out = capsys.readouterr().out
+    printed = capsys.readouterr()
+    out = printed.out
+    assert f"tune: sampling 24 training and 12 held-out scenarios on {jax.device_count()} device(s), compiling\n" in printed.err  # without the bar too
     best = saved["best_step"]
     assert f"updates 4 of 4; the tuned gains are the point after {best} update{'s' * (best != 1)}\n" in out
     st = saved["stability"]  # the verdict is printed, with digits enough to see it below 1

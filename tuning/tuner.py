@@ -394,8 +394,8 @@ def _tune_locked(
     os.makedirs(out_dir, exist_ok=True)
     if resume:  # said with or without the progress bar (--no-progress): where the run goes on from
         print(f"tune: {_resume_line(out_dir, meta, config.steps)}", file=sys.stderr, flush=True)
-    if progress:
-        print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios on {jax.device_count()} device(s), compiling", file=sys.stderr, flush=True)
+    # said with or without the bar too: a log under a scheduler (--no-progress) shows the devices
+    print(f"tune: sampling {config.n_scenarios} training and {config.n_heldout} held-out scenarios on {jax.device_count()} device(s), compiling", file=sys.stderr, flush=True)
     problem = Problem(config, optimizer)
     names = list(problem.tc.named(problem.tc.to_physical(problem.initial_raw)))
     if resume:
