@@ -650,10 +650,14 @@ def test_histograms_leave_out_the_diverged_runs(tmp_path, monkeypatch):
     columns = {name: np.asarray([1.0, 1e22, 3.0]) for name in names}
     columns["diverged"] = np.asarray([False, True, False])
     drawn = {}
-    monkeypatch.setattr(plotting, "histograms", lambda data, labels, title: drawn.update(data=data, title=title))
+    monkeypatch.setattr(plotting, "histograms", lambda data, labels, title: drawn.update(data=data, labels=labels, title=title))
     monkeypatch.setattr(plotting, "percentile_bands", lambda *args: None)
     monkeypatch.setattr(plotting, "save", lambda fig, path: None)  # nothing drawn: what is handed to the figure is tested
     monkeypatch.setattr(montecarlo, "tip_bands", lambda runner, percentiles: (np.arange(2) * 1e-3, np.zeros((len(percentiles), 2)), 2, 3))
     montecarlo._figures(SimpleNamespace(config=config, beam=config.beam), columns, str(tmp_path))
     assert set(drawn["data"]) == set(names) and all(list(v) == [1.0, 3.0] for v in drawn["data"].values())
     assert drawn["title"].startswith("dfs: 2 of 3 runs (diverged left out)")
+    # the axis labels: each metric's definition, the dB reductions' in their short form (the
+    # whole definition, summary.json's, took four lines under the panel)
+    assert drawn["labels"]["reduction_db_mode2"] == "vibration reduction at mode 2: open over closed-loop energy of the tip deflection (dB)"
+    assert {k: v for k, v in drawn["labels"].items() if not k.startswith("reduction")} == montecarlo.METRICS
