@@ -178,10 +178,10 @@ def _parser() -> argparse.ArgumentParser:
     # A negative number in exponent form is a value ("--k -1e3"), not an unknown option:
     # argparse before Python 3.13 knew only -1 and -1.5 ("--k: expected one argument"); this
     # is its pattern from 3.13 on. No option here starts with "-" and a digit.
-    parser._negative_number_matcher = re.compile(r"-\.?\d")
-    for command_parser in sub.choices.values():
-        command_parser._negative_number_matcher = re.compile(r"-\.?\d")
-        command_parser.set_defaults(command_parser=command_parser)  # main reports an unknown option with its command's usage
+    for each in (parser, *sub.choices.values()):
+        each._negative_number_matcher = re.compile(r"-\.?\d")
+    for command_parser in sub.choices.values():  # main reports an unknown option with its command's usage
+        command_parser.set_defaults(command_parser=command_parser)
     return parser
 
 
@@ -395,8 +395,8 @@ def _tuned_line(tuned: dict) -> str:
     from jaxflex.report import tuned_comparison
 
     paper, ours = tuned_comparison(tuned)
-    return (f"tuned {tuned['controller']} ({tuned['file']}): {ours[1]} (paper: {paper[1]}); "
-            f"q1 settling {ours[2]} against {paper[2]}, tip ISE {ours[4]} against {paper[4]} (m^2 s) with the paper's gains")
+    return (f"tuned {tuned['controller']} ({tuned['file']}): {ours.gains} (paper: {paper.gains}); "
+            f"q1 settling {ours.q1_settling} against {paper.q1_settling}, tip ISE {ours.tip_ise} against {paper.tip_ise} (m^2 s) with the paper's gains")
 
 
 def _reproduce_summary(results: dict) -> str:

@@ -212,18 +212,28 @@ def _report_md(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def tuned_comparison(tuned: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
+class TunedRow(NamedTuple):
+    """One row of ``tuned_comparison``, each cell formatted."""
+
+    label: str
+    gains: str
+    q1_settling: str
+    tip_range: str  # m
+    tip_ise: str  # m^2 s
+
+
+def tuned_comparison(tuned: dict[str, Any]) -> list[TunedRow]:
     """The paper's gains and the tuned ones on the paper scenario, as report.md's table and
-    ``jaxflex reproduce --params``' printout give them: (label, gains, q1 settling, tip range
-    (m), tip ISE (m^2 s)) for "paper" then "tuned", "diverged" in every cell of a diverged run."""
+    ``jaxflex reproduce --params``' printout give them: the "paper" row, then the "tuned" one,
+    "diverged" in every cell of a diverged run."""
     rows = []
     for label, params, run in (("paper", tuned["paper_params"], tuned["paper_run"]), ("tuned", tuned["params"], tuned["run"])):
         gains = ", ".join(f"{k} = {v:.4g}" for k, v in params.items() if isinstance(v, float))
         if run["diverged"]:
-            rows.append((label, gains, "diverged", "diverged", "diverged"))
+            rows.append(TunedRow(label, gains, "diverged", "diverged", "diverged"))
             continue
         tip = run["tip_deflection_m"]
-        rows.append((label, gains, _settling(run["q1"]["settling_time_s"]), f"{format_value(tip['min'])} .. {format_value(tip['max'])}", format_value(tip["ise"])))
+        rows.append(TunedRow(label, gains, _settling(run["q1"]["settling_time_s"]), f"{format_value(tip['min'])} .. {format_value(tip['max'])}", format_value(tip["ise"])))
     return rows
 
 
