@@ -311,13 +311,34 @@ def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[flo
     else:
         ax.legend(fontsize=8)
     if np.shape(t)[0] > 1:
-        ax.set_xlim(float(t[0]), float(t[-1]))
+        view = _settled_view(t, bands)
+        ax.set_xlim(float(t[0]), float(t[-1]) if view is None else view[1])
+        if view is not None:
+            ax.text(0.99, 0.03, f"from {view[0]:.3g} s to the horizon ({t[-1]:.3g} s) every band stays within {SETTLED_FRACTION:.0%} of the largest value drawn", transform=ax.transAxes, ha="right", va="bottom", fontsize=8, color="0.3")
     ax.set_xlabel("Time (s)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return fig
+
+
+SETTLED_FRACTION = 0.01  # percentile_bands: bands this close to zero, relative to their largest value, have settled
+
+
+def _settled_view(t: np.ndarray, bands: np.ndarray) -> tuple[float, float] | None:
+    """(settled, end): the time after which every band stays within SETTLED_FRACTION of the
+    largest finite value, and where percentile_bands ends its time axis, a quarter past it
+    (at least 5 % of the horizon). None, to draw the whole horizon: no finite value, or an
+    end that would leave out less than half of the horizon (a response settled in 0.4 s
+    filled a tenth of a 3 s figure)."""
+    magnitude = np.where(np.isfinite(bands), np.abs(bands), 0.0).max(axis=0)
+    active = np.flatnonzero(magnitude > SETTLED_FRACTION * magnitude.max())
+    if not active.size:
+        return None
+    start, settled, span = float(t[0]), float(t[active[-1]]), float(t[-1]) - float(t[0])
+    end = start + max(1.25 * (settled - start), 0.05 * span)
+    return (settled, end) if end - start < 0.5 * span else None
 
 
 def stability_chart(

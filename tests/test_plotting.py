@@ -171,3 +171,26 @@ def test_figures_name_empty_or_missing_data():
         plotting.responses(t, {"dfs": {"hub": t}}, [("tip", "m")], {}, "x")
     with pytest.raises(ValueError, match="signals must name at least one"):
         plotting.responses(t, {"dfs": {"hub": t}}, [], {}, "x")
+
+
+def test_percentile_bands_end_the_time_axis_when_the_motion_settles():
+    # montecarlo's tip_bands.png drew 3 s while the response was over in 0.4 s
+    t = np.arange(3000) * 1e-3
+    decay = 5e-3 * np.exp(-t / 0.05) * np.sin(2 * np.pi * 13.3 * t)
+    fig = plotting.percentile_bands(t, np.stack([-np.abs(decay), decay, np.abs(decay)]), [5.0, 50.0, 95.0], "Tip deflection (m)", "t")
+    ax = fig.axes[0]
+    # the peak, 3.4e-3 at the first crest (t = 18.8 ms), falls to 1 % of itself where
+    # 5e-3 exp(-t / 0.05) = 3.4e-5, t = 0.249 s: the last sample above it is a crest just before
+    magnitude = np.abs(decay)
+    settled = t[np.flatnonzero(magnitude > 0.01 * magnitude.max())[-1]]
+    assert 0.22 < settled < 0.25
+    assert ax.get_xlim() == pytest.approx((0.0, 1.25 * settled))
+    assert [x.get_text() for x in ax.texts] == [f"from {settled:.3g} s to the horizon (3 s) every band stays within 1% of the largest value drawn"]
+    # motion to the end, or settling after a third of the horizon: the whole horizon, no note
+    for bands in (np.stack([-np.ones_like(t), 0 * t, np.ones_like(t)]), np.stack([-1.0 * (t < 1.3), 0 * t, 1.0 * (t < 1.3)])):
+        ax = plotting.percentile_bands(t, bands, [5.0, 50.0, 95.0], "y", "t").axes[0]
+        assert ax.get_xlim() == (0.0, t[-1]) and not ax.texts
+    # a kick at the first sample only: the axis keeps 5 % of the horizon
+    kick = np.zeros((3, t.size))
+    kick[:, 0] = [-1.0, 0.0, 1.0]
+    assert plotting.percentile_bands(t, kick, [5.0, 50.0, 95.0], "y", "t").axes[0].get_xlim() == pytest.approx((0.0, 0.05 * t[-1]))
