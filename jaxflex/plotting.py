@@ -418,20 +418,25 @@ def calibration(
     damped = measured_damping is not None and len(measured_damping) > 0
     fig, axes = plt.subplots(1, 3 if damped else 2, figsize=(13.0 if damped else 9.0, 3.6))
     left, right = axes[:2]
-    left.plot(modes, measured_hz, "kx", ms=9, mew=2, label="measured")
+    # measured: an open square that a calibrated dot on it fills, not hides (a bold X did)
+    measured = dict(marker="s", ls="none", ms=10, mfc="none", mec="k", mew=1.5, label="measured")
+    calibrated = dict(marker="o", ls="none", ms=4, color="C0", zorder=3, label="model calibrated")
+    left.plot(modes, measured_hz, **measured)
     left.plot(modes, before_hz, "o", mfc="none", color="C1", label="model before")
-    left.plot(modes, after_hz, "o", ms=4, color="C0", label="model calibrated")
+    left.plot(modes, after_hz, **calibrated)
     if max(np.max(measured_hz), np.max(before_hz)) >= 10 * min(np.min(measured_hz), np.min(before_hz)):
         left.set_yscale("log")
     left.set_ylabel("Natural frequency (Hz)")
     width = 0.38
     for offset, values, label, color in ((-width / 2, before_hz, "model before", "C1"), (width / 2, after_hz, "model calibrated", "C0")):
-        right.bar(modes + offset, 100.0 * (np.asarray(values) / measured_hz - 1.0), width, label=label, color=color)
+        bars = right.bar(modes + offset, 100.0 * (np.asarray(values) / measured_hz - 1.0), width, label=label, color=color)
+        right.bar_label(bars, fmt="%+.2f", fontsize=7)  # a calibrated error of 0 draws no bar: its label shows it
     right.axhline(0.0, color="k", lw=0.8)
+    right.margins(y=0.12)  # room for the bar labels inside the frame
     right.set_ylabel("Error (% of measured)")
     if damped:
-        axes[2].plot(np.arange(1, len(measured_damping) + 1), 100.0 * np.asarray(measured_damping), "kx", ms=9, mew=2, label="measured")
-        axes[2].plot(modes, 100.0 * np.asarray(model_damping), "o", ms=4, color="C0", label="model calibrated")
+        axes[2].plot(np.arange(1, len(measured_damping) + 1), 100.0 * np.asarray(measured_damping), **measured)
+        axes[2].plot(modes, 100.0 * np.asarray(model_damping), **calibrated)
         axes[2].set_ylabel("Damping ratio (%)")
         # from 0, with room above the highest ratio: the autoscaled top sat on it (ratios of
         # 1 and 0.98 % drew their markers cut in half by the frame, under the legend)

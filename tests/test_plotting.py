@@ -127,6 +127,20 @@ def test_calibration_damping_markers_clear_of_the_frame_and_the_legend():
         assert ax.get_xlim() == (0.5, 2.5)
 
 
+def test_calibration_measured_marker_leaves_the_calibrated_dot_visible_and_errors_are_labelled():
+    # the measured bold X hid the calibrated dot drawn on it, and a calibrated error of 0 drew
+    # no bar at all, as if it were missing
+    fig = plotting.calibration(np.array([13.31, 35.1]), np.array([13.32, 36.47]), np.array([13.31, 35.1]), "t", np.array([0.01, 0.009815]), np.array([0.01, 0.009815]))
+    for ax in (fig.axes[0], fig.axes[2]):
+        measured, calibrated = (line for line in ax.get_lines() if line.get_label() in ("measured", "model calibrated"))
+        assert measured.get_marker() == "s" and measured.get_markerfacecolor() == "none"
+        assert calibrated.get_zorder() > measured.get_zorder() and calibrated.get_markersize() < measured.get_markersize()
+    fig.canvas.draw()
+    right = fig.axes[1]
+    labels = [t.get_text() for t in right.texts]
+    assert labels == [f"{100 * (13.32 / 13.31 - 1):+.2f}", f"{100 * (36.47 / 35.1 - 1):+.2f}", "+0.00", "+0.00"] == ["+0.08", "+3.90", "+0.00", "+0.00"]
+
+
 def test_stability_chart_title_with_many_modes_stays_on_the_figure():
     title = "DFS stability: 0.9 m arm, 6 modes at 13.3, 36.5, 115, 241, 412, 628 Hz, sampled at 1 ms (zoh)"
     k, tau = np.linspace(0, 165, 5), np.linspace(1e-3, 4e-2, 4)
