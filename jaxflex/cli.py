@@ -556,7 +556,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     summary = run_montecarlo(config, args.out, resume=args.resume, progress=not args.no_progress, on_chunk=_raise_pending)
     tip = summary["metrics"]["peak_tip_deflection_m"]
     spread = ", ".join(f"p{p:g} {format_value(tip[f'p{p:g}'], '.4g')}" for p in summary["percentiles"])
-    print(f"{summary['n_scenarios']} scenarios on {summary['devices']} device(s): diverged fraction {summary['diverged_fraction']:.4g}")
+    print(f"{summary['n_scenarios']} scenarios on {summary['devices']} device(s): diverged fraction {summary['diverged_fraction']:.4g} (blew up, or the tip beyond the arm's {config.beam.length_m:g} m length)")
     print(f"peak tip deflection (m): mean {format_value(tip['mean'], '.4g')}, {spread}")
     settling = summary["metrics"]["settling_time_s"]
     if settling["nonfinite"]:

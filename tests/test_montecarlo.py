@@ -19,7 +19,7 @@ from jaxflex.controllers import OpenLoopParams, open_loop
 from jaxflex.beam import BeamParams
 from jaxflex.montecarlo import MCConfig, controller_and_params, run_montecarlo
 from jaxflex.plant import discretize, make_plant
-from jaxflex.scenarios import ScenarioSpec, sample_scenarios
+from jaxflex.scenarios import ScenarioSpec, batch_plant, sample_scenarios
 
 SPEC = ScenarioSpec(horizon_s=0.3, impulse_max_n=0.5, youngs_modulus_rel=0.1, noise_angle_rad=1e-6)
 
@@ -148,6 +148,27 @@ def test_summary_matches_direct_rollouts(tmp_path, monkeypatch):
     meta["fingerprint"] = hashlib.sha256(json.dumps(meta["config"], sort_keys=True).encode()).hexdigest()[:16]
     (tmp_path / "montecarlo.json").write_text(json.dumps(meta))
     assert run_montecarlo(config, tmp_path, resume=True, progress=False, figures=False)["metrics"]["tip_ise"] == summary["metrics"]["tip_ise"]
+
+
+def test_a_tip_beyond_the_arms_length_counts_as_diverged(tmp_path):
+    """A growing loop that has not blown up (every state below 1e6) but whose tip deflected by
+    more than the arm's length is diverged: such runs (27 km on a 1.2 m arm) were averaged
+    into the statistics, and the diverged fraction called the controller 98 % robust."""
+    # positive feedback, k = -5: over 1 s some of the 8 runs pass the 0.9 m arm's length
+    config = MCConfig(controller="dfs", params={"k": -5.0}, n_scenarios=8, chunk=8, scenarios=ScenarioSpec(horizon_s=1.0))
+    runner = montecarlo._Runner(config)
+    batch = runner.sample(0)
+    plant = batch_plant(runner.beam, config.n_modes, config.scenarios.dt, config.method, batch, runner.nominal)
+    m = jax.device_get(jf.rollout(plant, runner.controller, runner.params, batch, output="metrics"))
+    assert not m.diverged.any() and m.peak_abs_state.max() < 1e6  # no run blew up
+    beyond = m.peak_tip_m > config.beam.length_m
+    assert 0 < beyond.sum() < 8
+    summary = run_montecarlo(config, tmp_path, progress=False, figures=False)
+    assert summary["diverged_fraction"] == beyond.mean()
+    assert summary["metrics"]["peak_tip_deflection_m"]["max"] == pytest.approx(float(m.peak_tip_m[~beyond].max()), rel=1e-6)
+    assert "more than the arm's length" in summary["diverged_definition"]
+    # the tip bands leave the same runs out
+    assert montecarlo.tip_bands(runner, [50.0])[2:] == (8 - beyond.sum(), 8)
 
 
 def test_diverged_runs_are_counted_not_averaged(tmp_path):
