@@ -474,14 +474,20 @@ def test_an_interrupted_report_leaves_the_earlier_pair_of_files(tmp_path, monkey
 def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
     """`jaxflex stability --tau 1` once ran out of memory after 40 s (8 s of delay samples per
     chart matrix); now it is refused at once, naming the range and the largest tau."""
-    with pytest.raises(ValueError, match=r"at most 160 are supported: pass tau_max_s \(jaxflex stability --tau-max\) from tau_s to 0.16 s \(its default, the largest of 8 tau_s, 40 ms and 20 samples, holds tau_s <= 0.02 s\)"):
-        stability_report.run(tmp_path, tau_s=1.0)
+    with pytest.raises(ValueError, match=r"tau_max_s = 0.24 s is 240 samples of dt = 0.001 s; at most 160 are supported: pass tau_max_s \(jaxflex stability --tau-max\) from tau_s to 0.16 s \(its default, the largest of 8 tau_s, 40 ms and 20 samples, holds tau_s <= 0.02 s\)"):
+        stability_report.run(tmp_path, tau_s=0.03)
+    # a delay no range can hold (5 ms typed as 5) is refused as such: the range's message sent
+    # it to --tau-max, whose own check then asked for a range up to 5 s
+    for tau, samples in ((1.0, 1000), (5.0, 5000), (0.161, 161)):
+        with pytest.raises(ValueError, match=rf"^tau_s must be at most 160 samples of dt = 0.001 s, 0.16 s, for the chart to hold it \(a delay in seconds: 5 ms is 0.005\); got {tau:g} s, {samples} samples$"):
+            stability_report.run(tmp_path, tau_s=tau, tau_max_s=None if tau < 1 else 0.16)
     with pytest.raises(ValueError, match="tau_max_s = 0.5 s is 500 samples"):
         stability_report.run(tmp_path, tau_max_s=0.5)
     # a chart that would not hold the point analysed (its star off the top)
     with pytest.raises(ValueError, match=r"tau_max_s must be at least the delay analysed, tau_s = 0.005 s, so that the chart holds that point; got 0.004 s"):
         stability_report.run(tmp_path, tau_max_s=0.004)
     assert not list(tmp_path.iterdir())
+    stability_report.run(tmp_path / "edge", tau_s=0.16, tau_max_s=0.16, n_k=2, n_tau=2, n_cheb=8)  # 160 samples: charted
 
 
 def test_cli_tau_max_sets_the_chart_range(tmp_path, monkeypatch):
