@@ -231,7 +231,8 @@ def check_rk4_step(plant: LinearPlant, dt: float) -> None:
     if fastest is not None:
         raise ValueError(
             f"method = 'rk4' with dt = {float(dt):g} s is unstable for this arm: its mode at {fastest / (2 * np.pi):.4g} Hz has "
-            f"omega dt = {fastest * float(dt):.3g} (RK4 holds up to about 2.8). Use method = 'zoh' (exact for any dt) or dt <= {2.8 / fastest:.3g} s"
+            f"omega dt = {fastest * float(dt):.3g} (RK4 holds up to about 2.8). Use method = 'zoh' (exact for any dt) or dt <= {2.8 / fastest:.3g} s, "
+            "once the arm and dt are what you meant: a unit slip (a thickness in mm, dt in ms) gives this too"
         )
 
 

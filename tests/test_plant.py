@@ -198,6 +198,10 @@ def test_rk4_step_that_amplifies_a_mode_is_refused_by_the_configs():
     message = r"method = 'rk4' with dt = 0.001 s is unstable for this arm: its mode at 69\d.\d Hz has omega dt = 4.3\d"
     with pytest.raises(ValueError, match=message):
         discretize(plant, 1e-3)
+    # a thickness typed in mm (5 m) failed here, before tune printed its model, and the advice
+    # (method = 'zoh') would have tuned a 5 m thick link: the message says to check units first
+    with pytest.raises(ValueError, match=r"Use method = 'zoh' \(exact for any dt\) or dt <= \S+ s, once the arm and dt are what you meant: a unit slip \(a thickness in mm, dt in ms\) gives this too$"):
+        discretize(make_plant(BeamParams(thickness_m=5.0), 2), 1e-3)
     discretize(plant, 1e-3, "zoh")
     with pytest.raises(ValueError, match="check_rk4 must be True or False; got 0"):
         discretize(plant, 1e-3, check_rk4=0)
