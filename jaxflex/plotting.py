@@ -380,24 +380,30 @@ def stability_chart(
     cmap = matplotlib.colors.ListedColormap(colors)
     ax.pcolormesh(k, tau_ms, cls, cmap=cmap, vmin=-0.5, vmax=len(colors) - 0.5, shading="nearest")
     handles = [matplotlib.patches.Patch(color=c, label=n) for c, n in zip(colors, names) if np.any(cls == names.index(n))]
+    def crosses(values: np.ndarray, level: float) -> bool:  # a contour at level is drawn (the legend named lines that were not)
+        return bool(np.nanmin(values) < level < np.nanmax(values))
+
     if radius.shape[0] > 1 and radius.shape[1] > 1:
-        ax.contour(k, tau_ms, radius, levels=[1.0], colors="C0", linewidths=1.2)
-        handles.append(matplotlib.lines.Line2D([], [], color="C0", lw=1.2, label="sampled: spectral radius = 1"))
-        if have_cont:
+        if crosses(radius, 1.0):
+            ax.contour(k, tau_ms, radius, levels=[1.0], colors="C0", linewidths=1.2)
+            handles.append(matplotlib.lines.Line2D([], [], color="C0", lw=1.2, label="sampled: spectral radius = 1"))
+        if have_cont and crosses(np.asarray(rightmost_real, float), 0.0):
             ax.contour(k, tau_ms, np.asarray(rightmost_real, float), levels=[0.0], colors="k", linewidths=1.0, linestyles="--")
             handles.append(matplotlib.lines.Line2D([], [], color="k", lw=1.0, ls="--", label="continuous: rightmost Re = 0"))
     if first_delay_s is not None:
         first = 1e3 * np.asarray(first_delay_s, float)
         ok = np.isfinite(first) & (first <= tau_ms.max())
-        ax.plot(k[ok], first[ok], "o", ms=3, color="C3", label="first destabilising delay (crossings)")
-        handles.append(matplotlib.lines.Line2D([], [], color="C3", marker="o", ms=3, ls="none", label="first destabilising delay (crossings)"))
+        if ok.any():
+            ax.plot(k[ok], first[ok], "o", ms=3, color="C3")
+            handles.append(matplotlib.lines.Line2D([], [], color="C3", marker="o", ms=3, ls="none", label="first destabilising delay (crossings)"))
     if point is not None:
         ax.plot([point[0]], [1e3 * point[1]], marker="*", ms=14, color="k", mec="w", ls="none")
         handles.append(matplotlib.lines.Line2D([], [], color="k", marker="*", ms=10, ls="none", label=f"operating point (k = {point[0]:g}, tau = {1e3 * point[1]:g} ms)"))
     ax.set_xlabel("Gain k (N*m/rad)")
     ax.set_ylabel("Delay tau (ms)")
     ax.set_title(textwrap.fill(title, 75))  # it lists the arm's modes: 6 of them ran off the figure
-    ax.legend(handles=handles, fontsize=7, loc="upper right", framealpha=0.9)
+    # under the chart: inside, it covered the top right, where the regions differ (found in a walkthrough)
+    ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     fig.tight_layout()
     return fig
 

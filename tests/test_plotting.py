@@ -208,3 +208,22 @@ def test_percentile_bands_end_the_time_axis_when_the_motion_settles():
     kick = np.zeros((3, t.size))
     kick[:, 0] = [-1.0, 0.0, 1.0]
     assert plotting.percentile_bands(t, kick, [5.0, 50.0, 95.0], "y", "t").axes[0].get_xlim() == pytest.approx((0.0, 0.05 * t[-1]))
+
+
+def test_stability_chart_legend_sits_under_the_chart_and_names_only_what_is_drawn():
+    # the legend covered the chart's top right, where the regions differ, and named the
+    # spectral-radius line and the crossing dots on a chart (k = -5) that had neither
+    k, tau = np.linspace(0, 60, 7), np.arange(1, 13) * 1e-3
+    radius = 0.95 + 0.01 * np.add.outer(np.arange(12), np.arange(7))  # crosses 1
+    rightmost = radius - 1.02
+    fig = plotting.stability_chart(k, tau, radius, rightmost, np.full(7, 0.0075), point=(20.0, 0.004))
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    assert ax.get_legend().get_window_extent().y1 < ax.get_window_extent().y0  # below the axes
+    assert ax.get_legend().get_window_extent().y0 >= 0  # on the figure
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == [
+        "unstable (both)", "stable: continuous only", "stable (both)", "sampled: spectral radius = 1",
+        "continuous: rightmost Re = 0", "first destabilising delay (crossings)", "operating point (k = 20, tau = 4 ms)",
+    ]
+    stable = plotting.stability_chart(k, tau, np.full((12, 7), 0.99), np.full((12, 7), -1.0), np.full(7, np.inf))
+    assert [t.get_text() for t in stable.axes[0].get_legend().get_texts()] == ["stable (both)"]
