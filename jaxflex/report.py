@@ -316,7 +316,9 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
         with open(path, encoding="utf-8") as f:
             data = json.load(f)
     except (OSError, ValueError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
-        raise ValueError(f"--params: cannot read {path} as tuned.json: {err}") from None
+        inside = os.path.join(path, "tuned.json")
+        hint = f" (the tune run's folder: pass {inside})" if os.path.isdir(path) and os.path.isfile(inside) else ""
+        raise ValueError(f"--params: cannot read {path} as tuned.json: {err}{hint}") from None
     if isinstance(data, dict) and "metrics" in data and "n_scenarios" in data:
         # its params are the gains it simulated, without the model they were tuned on
         raise ValueError(f"--params: {path} is a jaxflex montecarlo summary.json; pass the tuned.json that jaxflex tune wrote")

@@ -233,6 +233,11 @@ def test_cli_names_options_in_its_errors(tmp_path, capsys):
     assert cli.main(["calibrate", "--freqs", "14", "--out", str(config / "e")]) == 2  # under a file
     assert "error: --out" in capsys.readouterr().err
     assert not any(os.path.exists(tmp_path / name) for name in "abcd")  # nothing left behind
+    # damping typed in percent: the refusal says what the ratio is (1.5 was left to be guessed)
+    assert cli.main(["calibrate", "--freqs", "13", "36", "--damping", "1.5", "2", "--out", str(tmp_path / "f")]) == 2
+    assert "error: --damping must be finite numbers in (0, 1); got [1.5, 2.0] (ratios, not percent: 1.5 % is 0.015)\n" in capsys.readouterr().err
+    assert cli.main(["calibrate", "--freqs", "13", "36", "--damping", "0.5", "2", "--out", str(tmp_path / "f")]) == 2
+    assert capsys.readouterr().err.endswith("error: --damping must be finite numbers in (0, 1); got [0.5, 2.0]\n")  # not a percentage slip
 
 
 def _clamped_damping(arm: BeamParams, n_modes: int) -> np.ndarray:

@@ -752,6 +752,9 @@ def test_cli_unreadable_config_is_named(tmp_path, capsys):
             assert cli.main([command, "--params", str(path), "--out", str(tmp_path / command)]) == 2
             assert re.search(f"jaxflex {command}: error: --params: cannot read .*{path.name} as tuned.json", capsys.readouterr().err), (command, path)
             assert not (tmp_path / command).exists()
+        # the tune run's folder: the refusal names the file in it ("Is a directory" alone did not)
+        assert cli.main([command, "--params", str(tmp_path), "--out", str(tmp_path / command)]) == 2
+        assert f"as tuned.json: [Errno 21] Is a directory: '{tmp_path}' (the tune run's folder: pass {tuned})\n" in capsys.readouterr().err
 
 
 def test_cli_montecarlo_refuses_params_of_another_controller(tmp_path, capsys):

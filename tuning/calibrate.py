@@ -136,7 +136,13 @@ def _check(measured_hz: Any, params: beam.BeamParams, fit: Sequence[str] | None,
     n_modes = max(2, measured.size) if n_modes is None else beam.check_n_modes(n_modes)
     if n_modes < measured.size:
         raise ValueError(f"n_modes must be >= the number of measured frequencies ({measured.size}); got {n_modes}")
-    ratios = np.zeros(0) if damping is None else _numbers("damping", damping, 1.0)
+    try:
+        ratios = np.zeros(0) if damping is None else _numbers("damping", damping, 1.0)
+    except ValueError as err:
+        arr = np.asarray(damping, dtype=object).reshape(-1)
+        if all(isinstance(v, (int, float)) and 1 <= v < 100 for v in arr):  # 1.5 meant as 1.5 %
+            raise ValueError(f"{err} (ratios, not percent: {arr[0]:g} % is {arr[0] / 100:g})") from None
+        raise
     if ratios.size > measured.size:
         raise ValueError(f"damping holds {ratios.size} ratios but {_count(measured.size)} measured: give at most one ratio per measured mode, mode 1 first")
     return measured, fit, n_modes, ratios
