@@ -208,14 +208,17 @@ def save(fig: plt.Figure, path: str | os.PathLike) -> None:
         plt.close(fig)
 
 
-def loss_curves(steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str, best_step: int | None = None, paper: float | None = None) -> plt.Figure:
+def loss_curves(
+    steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str, best_step: int | None = None, paper: float | None = None, penalised: bool = False
+) -> plt.Figure:
     """Training loss per step and held-out objective at each validation; log scale where the
     finite positive values span a decade or more (over less, a log axis labels one tick).
     ``best_step``: the step whose parameters were kept, marked by a vertical line. ``paper``:
     the paper gains' training objective, named on the axis (1 only for the mean of one unit
-    weight; the CVaR, the worst case and other weights score them otherwise)."""
+    weight; the CVaR, the worst case and other weights score them otherwise). ``penalised``:
+    the loss holds the DFS stability penalty too (a fuzzy run's legend named one it had not)."""
     fig, ax = plt.subplots(figsize=(7.0, 3.6))
-    ax.plot(steps, loss, label="training loss (objective + penalty)", color="C0")
+    ax.plot(steps, loss, label="training loss (objective + stability penalty)" if penalised else "training loss (objective)", color="C0")
     if len(val_steps):
         ax.plot(val_steps, val, "o-", label="held-out objective", color="C1", ms=3)
     if best_step is not None:

@@ -26,7 +26,7 @@ def test_tune_psd_marks_the_modes_of_the_scenarios_own_plant(monkeypatch, tmp_pa
     marked, titles = [], {"responses": [], "psds": [], "loss": []}
     monkeypatch.setattr(plotting, "psds", lambda freqs, runs, modes, ylabel, title, **k: marked.append(np.asarray(modes)) or titles["psds"].append(title) or plotting.plt.figure())
     monkeypatch.setattr(plotting, "responses", lambda t, runs, signals, div, title, **k: titles["responses"].append(title) or plotting.plt.figure())
-    monkeypatch.setattr(plotting, "loss_curves", lambda steps, loss, vs, v, title, *a: titles["loss"].append(title) or plotting.plt.figure())
+    monkeypatch.setattr(plotting, "loss_curves", lambda steps, loss, vs, v, title, *a, **k: titles["loss"].append(title) or plotting.plt.figure())
     state = {"problem": problem, "history": [{"step": 0, "loss": 1.0, "val_objective": 1.0}], "best_step": 0, "best_raw": problem.initial_raw}
     run._figures(state, str(tmp_path), 1.0)
     assert len(marked) == 3  # the paper scenario (nominal plant), then held-out 1 and 2

@@ -222,6 +222,10 @@ def test_loss_curves_name_the_paper_gains_objective_and_whole_steps():
     assert all(float(tick) == int(tick) for tick in ax.get_xticks())  # no step 0.25 over 2 updates
     plotting.plt.close(fig)
     assert plotting.loss_curves(np.arange(3), np.ones(3), np.array([]), np.array([]), "t").axes[0].get_ylabel() == "Objective"
+    # the legend names the stability penalty only where the loss holds it (DFS alone): a fuzzy run's named one
+    for penalised, label in ((False, "training loss (objective)"), (True, "training loss (objective + stability penalty)")):
+        legend = plotting.loss_curves(np.arange(3), np.ones(3), np.array([]), np.array([]), "t", penalised=penalised).axes[0].get_legend()
+        assert legend.get_texts()[0].get_text() == label
     plotting.plt.close("all")
 
 

@@ -249,6 +249,7 @@ def test_tuner_objective_gradient_matches_fd_for_other_controllers_and_delays(op
     (_, aux), grads = vg(raw)
     if "penalty" in aux:
         assert float(aux["penalty"]) == 0.0
+    assert problem.penalised == ("penalty" in aux)  # what loss.png's legend says the loss holds
     leaves, treedef = jax.tree_util.tree_flatten_with_path(raw)
     names, values = [jax.tree_util.keystr(path) for path, _ in leaves], [value for _, value in leaves]
     assert len(names) == {"fuzzy": 3, "dfs+fuzzy": 5, "dfs": 2}[options["controller"]]

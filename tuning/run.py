@@ -26,7 +26,7 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
     loss = np.array([h["loss"] for h in history])
     val_rows = [h for h in history if h.get("val_objective") is not None]
     written = []
-    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller} for the {plotting.arm_label(problem.beam.length_m, beam.natural_frequencies_hz(problem.beam, config.n_modes))}", state["best_step"], paper_objective)
+    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller} for the {plotting.arm_label(problem.beam.length_m, beam.natural_frequencies_hz(problem.beam, config.n_modes))}", state["best_step"], paper_objective, penalised=problem.penalised)
     plotting.save(fig, os.path.join(out_dir, "loss.png"))
     written.append("loss.png")
 

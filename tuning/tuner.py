@@ -230,6 +230,12 @@ class Problem:
     def _replicated(self, tree: Any) -> Any:
         return tree if self.mesh is None else jax.device_put(tree, NamedSharding(self.mesh, PartitionSpec()))
 
+    @property
+    def penalised(self) -> bool:
+        """Whether the training loss holds the stability penalty: DFS alone (``log_radius``),
+        with a stability_weight above 0."""
+        return self.config.controller == "dfs" and self.config.objective.stability_weight > 0
+
     def log_radius(self, raw: Any) -> jax.Array | None:
         """Log spectral radius of the nominal sampled DFS loop; None unless the controller is
         DFS alone (with a fuzzy part the loop is nonlinear: no loop matrix to penalise)."""
