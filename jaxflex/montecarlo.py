@@ -31,7 +31,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxflex import beam, checks, fileio
-from jaxflex.analysis.metrics import diverged
+from jaxflex.analysis.metrics import RUN_DIVERGED_DOC, diverged, run_diverged
 from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.fuzzy import check_temperature
@@ -169,16 +169,8 @@ def metric_names(n_modes: int, reduction: str = REDUCTION_DOC) -> dict[str, str]
     return {**METRICS, **{f"reduction_db_mode{i + 1}": reduction.replace("mode i", f"mode {i + 1}") for i in range(n_modes)}}
 
 
-# The length bound: a growing loop reached 27 km on a 1.2 m arm in 2 s with every state below
-# 1e6, and such runs were averaged into the statistics.
-DIVERGED_DOC = (
-    "the run blew up (a state non-finite or above 1e6) or its tip deflected by more than the arm's length, "
-    "far outside the small-deflection model"
-)
-
-
 def _metrics_row(m: RunMetrics, open_loop_energy: jax.Array, length_m: float) -> dict[str, jax.Array]:
-    """One scenario's row; ``diverged`` as ``DIVERGED_DOC`` says."""
+    """One scenario's row; ``diverged`` is ``run_diverged``."""
     reduction = 10 * (jnp.log10(open_loop_energy) - jnp.log10(m.modal_energy))
     return {
         "settling_time_s": m.settling_time_s,
@@ -186,7 +178,7 @@ def _metrics_row(m: RunMetrics, open_loop_energy: jax.Array, length_m: float) ->
         "tip_ise": m.tip_ise,
         "control_effort": m.control_effort,
         "final_hub_angle_rad": m.final_hub_angle_rad,
-        "diverged": m.diverged | (m.peak_tip_m > length_m),
+        "diverged": run_diverged(m.diverged, m.peak_tip_m, length_m),
         **{f"reduction_db_mode{i + 1}": reduction[i] for i in range(reduction.shape[0])},
     }
 
@@ -264,7 +256,7 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
     return {
         "n_scenarios": int(failed.size),
         "diverged_fraction": float(failed.mean()),
-        "diverged_definition": DIVERGED_DOC,
+        "diverged_definition": RUN_DIVERGED_DOC,
         "controller": config.controller,
         "params": {name: value for name, value in param_values(config.params).items() if name in PARAMETERS[config.controller]},
         "controller_options": {name: getattr(config, name) for name in CONFIG_OPTIONS},
@@ -419,7 +411,7 @@ def tip_bands(runner: _Runner, percentiles: Sequence[float]) -> tuple[np.ndarray
     def run(batch: Scenario) -> tuple[jax.Array, jax.Array]:
         traj = rollout(batch_plant(runner.beam, config.n_modes, spec.dt, config.method, batch, runner.nominal), runner.controller, runner.params, batch)
         tip = traj.z[..., 1]
-        return tip, jax.vmap(diverged)(traj.x) | (jnp.max(jnp.abs(tip), axis=-1) > runner.beam.length_m)  # as the chunks' rows
+        return tip, run_diverged(jax.vmap(diverged)(traj.x), jnp.max(jnp.abs(tip), axis=-1), runner.beam.length_m)  # as the chunks' rows
 
     tips, bad = jax.jit(run)(batch)
     tips = np.asarray(tips)[~np.asarray(bad)]  # [kept, T]

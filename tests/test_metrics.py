@@ -14,6 +14,7 @@ from jaxflex.analysis import (
     iae,
     ise,
     peaks,
+    run_diverged,
     samples_at,
     settling_time,
     signal_metrics,
@@ -153,6 +154,30 @@ def test_diverged():
     for bad in (-1.0, 0.0, np.nan, "1e6", [1.0, 2.0]):  # a bound <= 0 called every run diverged
         with pytest.raises(ValueError, match="threshold must be a (real )?number"):
             diverged(x, threshold=bad)
+
+
+def test_run_diverged_counts_a_tip_beyond_the_arm():
+    # blown up, beyond the 0.9 m arm, at its length (not beyond), and neither; batched and traced
+    blew_up = np.array([True, False, False, False])
+    peak = np.array([1e-3, 2.0, 0.9, 0.5])
+    np.testing.assert_array_equal(run_diverged(blew_up, peak, 0.9), [True, True, False, False])
+    np.testing.assert_array_equal(jax.jit(run_diverged)(blew_up, peak, 0.9), [True, True, False, False])
+    assert bool(run_diverged(True, np.nan, 0.9)) and not bool(run_diverged(False, np.nan, 0.9))  # NaN counts through blew_up
+
+
+def test_reproduce_run_metrics_use_the_same_rule():
+    """reproduce's results.json and montecarlo's summary.json call the same runs diverged: a
+    tip grown to 2 m on the paper's 0.9 m arm, every state below 1e6."""
+    from types import SimpleNamespace
+
+    from jaxflex.report import _run_metrics
+
+    t = np.arange(3000) * DT  # the paper's 3 s horizon, which holds results.json's sample times
+    for amplitude, expected in ((2.0, True), (0.5, False)):
+        tip = amplitude * np.exp(3 * (t - t[-1])) * np.sin(2 * np.pi * 13 * t)
+        x = np.stack([0 * t, tip / 2, 0 * t, 0 * t], axis=1)  # q1 = tip / 2: no state near 1e6
+        traj = SimpleNamespace(x=jnp.asarray(x), z=jnp.stack([jnp.zeros(t.size), jnp.asarray(tip)], axis=1), u=jnp.zeros((t.size, 1)))
+        assert _run_metrics(traj, DT)["diverged"] is expected
 
 
 def test_samples_at():

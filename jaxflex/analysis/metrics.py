@@ -162,6 +162,30 @@ def control_effort(u: ArrayLike, dt: ArrayLike) -> jax.Array:
     return ise(u, dt)
 
 
+RUN_DIVERGED_DOC = (
+    "the run blew up (a state non-finite or above 1e6) or its tip deflected by more than the arm's length, "
+    "far outside the small-deflection model"
+)
+"""What ``run_diverged`` means, as montecarlo's summary.json and reproduce's results.json say."""
+
+
+def run_diverged(blew_up: ArrayLike, peak_tip_m: ArrayLike, length_m: ArrayLike) -> jax.Array:
+    """Whether a closed-loop run diverged, as the commands report it (``RUN_DIVERGED_DOC``).
+
+    A growing loop can leave the model long before it blows up: one reached 27 km on a 1.2 m
+    arm in 2 s with every state below 1e6, and was averaged into a Monte Carlo's statistics.
+
+    Args:
+      blew_up: ``diverged`` of the run's states (``RunMetrics.diverged`` of a streamed run).
+      peak_tip_m: the run's peak |tip deflection| (m); NaN counts through ``blew_up``.
+      length_m: the arm's length (m).
+
+    Returns:
+      bool, the broadcast shape of the arguments.
+    """
+    return jnp.logical_or(blew_up, jnp.asarray(peak_tip_m) > length_m)
+
+
 def diverged(x: ArrayLike, threshold: ArrayLike = DIVERGENCE_THRESHOLD) -> jax.Array:
     """Whether a run blew up: any non-finite entry, or any ``|x| > threshold``.
 
