@@ -330,7 +330,7 @@ SETTLED_FRACTION = 0.01  # percentile_bands: bands this close to zero, relative 
 
 
 def _settled_view(t: np.ndarray, bands: np.ndarray) -> tuple[float, float] | None:
-    """(settled, end): the time after which every band stays within SETTLED_FRACTION of the
+    """(settled, end): the time from which every band stays within SETTLED_FRACTION of the
     largest finite value, and where percentile_bands ends its time axis, a quarter past it
     (at least 5 % of the horizon). None, to draw the whole horizon: no finite value, or an
     end that would leave out less than half of the horizon (a response settled in 0.4 s
@@ -339,7 +339,8 @@ def _settled_view(t: np.ndarray, bands: np.ndarray) -> tuple[float, float] | Non
     active = np.flatnonzero(magnitude > SETTLED_FRACTION * magnitude.max())
     if not active.size:
         return None
-    start, settled, span = float(t[0]), float(t[active[-1]]), float(t[-1]) - float(t[0])
+    start, span = float(t[0]), float(t[-1]) - float(t[0])
+    settled = float(t[min(active[-1] + 1, len(t) - 1)])  # the first sample of the settled tail
     end = start + max(1.25 * (settled - start), 0.05 * span)
     return (settled, end) if end - start < 0.5 * span else None
 
