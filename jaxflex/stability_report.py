@@ -79,8 +79,8 @@ def run(
     tau = float(tau_s)
     if d > _MAX_CHART_SAMPLES:  # no --tau-max can chart it (tau = 5 s, 5 ms typed without its unit, was sent to --tau-max)
         raise ValueError(
-            f"tau_s must be at most {_MAX_CHART_SAMPLES} samples of dt = {dt:g} s, {_MAX_CHART_SAMPLES * dt:g} s, for the chart to hold it "
-            f"(a delay in seconds: 5 ms is 0.005); got {tau:g} s, {d} samples"
+            f"tau_s must be at most {_MAX_CHART_SAMPLES} samples of dt = {dt:g} s, {_MAX_CHART_SAMPLES * dt:g} s, for the chart to hold it; "
+            f"got {tau:g} s, {d} samples (tau_s is in seconds, 5 ms is 0.005; or a larger dt)"
         )
     check_method(method)
     n_k = checks.integer("n_k", n_k, 2)
