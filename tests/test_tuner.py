@@ -250,6 +250,8 @@ def test_tuner_objective_gradient_matches_fd_for_other_controllers_and_delays(op
     if "penalty" in aux:
         assert float(aux["penalty"]) == 0.0
     assert problem.penalised == ("penalty" in aux)  # what loss.png's legend says the loss holds
+    if options["controller"] == "dfs":  # with no weight the penalty is 0: the legend names none
+        assert not Problem(TuneConfig(**options, **SMALL, objective=dataclasses.replace(objective, stability_weight=0.0), initial=initial)).penalised
     leaves, treedef = jax.tree_util.tree_flatten_with_path(raw)
     names, values = [jax.tree_util.keystr(path) for path, _ in leaves], [value for _, value in leaves]
     assert len(names) == {"fuzzy": 3, "dfs+fuzzy": 5, "dfs": 2}[options["controller"]]
