@@ -608,8 +608,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         options = {"measured_hz": "--freqs", "damping": "--damping", "n_modes": modes, "fit": "--fit"}
         raise ValueError(f"{options[first]} {rest}" if first in options else str(err)) from None
     print("mode  measured (Hz)  model before  model calibrated  error")
-    for i, (m, b, a) in enumerate(zip(result.measured_hz, result.before_hz, result.after_hz)):
-        error = 100 * (a / m - 1)
+    for i, (m, b, a, error) in enumerate(zip(result.measured_hz, result.before_hz, result.after_hz, result.error_after_percent)):
         print(f"{i + 1:>4}  {m:>13.6g}  {b:>12.6g}  {a:>16.6g}  {0.0 if abs(error) < 5e-5 else error:+.4f} %")
     for name, start, sensitivity in zip(result.fit, result.start, result.sensitivity):
         value = float(getattr(result.beam, name))
@@ -626,7 +625,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     moved = [name for name, start in zip(result.fit, result.start) if not 0.1 <= float(getattr(result.beam, name)) / start <= 10]
     if moved:
         print(f"note: {', '.join(moved)} moved by more than 10x from the starting arm: check the units (Hz, not rad/s; SI constants in [beam]) and --hub", file=sys.stderr)
-    errors = 100 * np.abs(result.after_hz / result.measured_hz - 1)
+    errors = np.abs(result.error_after_percent)
     if errors.max() > CALIBRATION_MISFIT_PERCENT:  # free-hub frequencies fitted as clamped left -34 % and +51 % with no word
         worst = int(np.argmax(errors))
         print(f"note: the calibrated arm still misses mode {worst + 1} by {errors[worst]:.3g} % (over {CALIBRATION_MISFIT_PERCENT:g} %): fitting {', '.join(result.fit)} "

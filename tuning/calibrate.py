@@ -26,6 +26,7 @@ of the calibrated model the measured ratio.
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, NamedTuple, Sequence
 
 import jax
@@ -81,6 +82,11 @@ class Calibration(NamedTuple):
     sensitivity: np.ndarray
     evaluations: int
 
+    @property
+    def error_after_percent(self) -> np.ndarray:
+        """[n_f] the calibrated model's error in each frequency, in % of the measured."""
+        return 100.0 * (self.after_hz / self.measured_hz - 1.0)
+
     def as_dict(self) -> dict[str, Any]:
         """Plain numbers for JSON."""
         return {
@@ -93,7 +99,7 @@ class Calibration(NamedTuple):
             "measured_hz": self.measured_hz.tolist(),
             "model_before_hz": self.before_hz.tolist(),
             "model_after_hz": self.after_hz.tolist(),
-            "error_after_percent": (100.0 * (self.after_hz / self.measured_hz - 1.0)).tolist(),
+            "error_after_percent": self.error_after_percent.tolist(),
             "measured_damping": self.measured_damping.tolist(),
             "model_damping": self.after_damping.tolist(),
             "evaluations": self.evaluations,
@@ -140,7 +146,7 @@ def _check(measured_hz: Any, params: beam.BeamParams, fit: Sequence[str] | None,
         ratios = np.zeros(0) if damping is None else _numbers("damping", damping, 1.0)
     except ValueError as err:
         arr = np.asarray(damping, dtype=object).reshape(-1)
-        if all(isinstance(v, (int, float)) and 1 <= v < 100 for v in arr):  # 1.5 meant as 1.5 %
+        if all(isinstance(v, numbers.Real) and not isinstance(v, bool) and 1 <= v < 100 for v in arr):  # 1.5 meant as 1.5 %
             raise ValueError(f"{err} (ratios, not percent: {arr[0]:g} % is {arr[0] / 100:g})") from None
         raise
     if ratios.size > measured.size:
