@@ -503,8 +503,10 @@ def test_tuning_lowers_heldout_objective(tuned, controller):
 
 
 def test_bad_input_is_refused(tmp_path):
-    with pytest.raises(ValueError, match=r"initial \(missing names take the paper's values\): tau_s must be in \[0.001, 0.032\]"):
-        Problem(TuneConfig(controller="dfs", initial={"tau_s": 0.1}, **SHARED))
+    # out-of-range starting values are refused by the config, before tune() makes its folder
+    for initial, reason in (({"tau_s": 0.1}, r"tau_s must be in \[0.001, 0.032\]"), ({"tau_s": -0.1}, r"tau_s must be in \[0.001, 0.032\]"), ({"k": -5.0}, r"k must be")):
+        with pytest.raises(ValueError, match=r"initial \(missing names take the paper's values\): " + reason):
+            TuneConfig(controller="dfs", initial=initial, **SHARED)
     # a sample time the paper's 5 ms delay does not fit: the message says why the paper's gains matter
     coarse = dict(SHARED, scenarios=ScenarioSpec(horizon_s=0.4, dt=0.01))
     with pytest.raises(ValueError, match=r"the paper's gains, which set the objective's scales, cannot be run with dt = 0.01 s"):

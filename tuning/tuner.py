@@ -119,6 +119,12 @@ class TuneConfig:
             raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed)}")
         param_values(self.initial, "initial")
         check_plants(self.scenarios, self.beam, self.n_modes, self.method)  # refuses an arm not finite in the dtype of the run, or RK4 growing one
+        # Out-of-range starting values are refused here, not when tune() has made its folder.
+        tc = tuned_controller(self.controller, self.scenarios.dt, self.capacity, self.delay, self.pade_order, self.fuzzy_temperature)
+        try:
+            tc.to_raw(tc.from_named(dict(self.initial)))
+        except ValueError as err:
+            raise ValueError(f"initial (missing names take the paper's values): {err}") from None
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
@@ -172,11 +178,7 @@ class Problem:
         self.train = self._place(sample_scenarios(spec, key_train, config.n_scenarios, config.n_modes))
         self.heldout = self._place(sample_scenarios(dataclasses.replace(spec, include_paper=False), key_val, config.n_heldout, config.n_modes))
         self.nominal = discretize(make_plant(self.beam, config.n_modes), spec.dt, config.method)
-        initial = self.tc.from_named(dict(config.initial))
-        try:
-            self.initial_raw = self.tc.to_raw(initial)
-        except ValueError as err:
-            raise ValueError(f"initial (missing names take the paper's values): {err}") from None
+        self.initial_raw = self.tc.to_raw(self.tc.from_named(dict(config.initial)))  # in range: TuneConfig checked it
         try:
             self.paper_raw = self.tc.to_raw(self.tc.paper)
         except ValueError as err:  # the objective's scales are those of the paper's gains
