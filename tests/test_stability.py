@@ -266,8 +266,11 @@ def test_spectral_radius_of_a_fractional_delay(plant):
     np.testing.assert_allclose(g, (oracle(5.3 + h) - oracle(5.3 - h)) / (2 * h), rtol=RTOL_GRAD)
     with pytest.raises(ValueError, match=r"delay_steps must be a number of samples in \[1, n_hist = 8\] .*got 8.5"):
         st.spectral_radius(dplant, PAPER_K, 8.5, n_hist)
-    with pytest.raises(ValueError, match="delay_steps must be an integer >= 1"):
-        st.spectral_radius(dplant, PAPER_K, 5.3)  # no n_hist: whole samples only
+    for d in (5.3, 5.0):  # no n_hist: whole samples only, and the refusal says where a fractional delay goes
+        with pytest.raises(ValueError, match=rf"^delay_steps must be an integer >= 1 \(samples\); got {d}; a fractional delay needs n_hist, the history length \(an integer >= the delay\)$"):
+            st.spectral_radius(dplant, PAPER_K, d)
+    with pytest.raises(ValueError, match=r"^delay_steps must be an integer >= 1 \(samples\); got 0$"):
+        st.spectral_radius(dplant, PAPER_K, 0)
 
 
 def test_chart_agrees_with_simulation(plant):

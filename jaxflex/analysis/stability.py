@@ -594,7 +594,12 @@ def _check_sampled_args(k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None
         return _check_delay_steps(n_hist, "n_hist")
     arr = checks.real_array("delay_steps", delay_steps, scalar=True)
     if n_hist is None:
-        return _check_delay_steps(arr.item() if arr.ndim == 0 and arr.dtype.kind in "iu" else delay_steps)
+        try:
+            return _check_delay_steps(arr.item() if arr.ndim == 0 and arr.dtype.kind in "iu" else delay_steps)
+        except ValueError as err:
+            if arr.ndim == 0 and arr.dtype.kind == "f" and float(arr) >= 1:  # 5.5 (or 5.0) samples: say where a fractional delay goes
+                raise ValueError(f"{err}; a fractional delay needs n_hist, the history length (an integer >= the delay)") from None
+            raise
     n_hist = _check_delay_steps(n_hist, "n_hist")
     if arr.ndim != 0 or not 1 <= float(arr) <= n_hist:
         raise ValueError(f"delay_steps must be a number of samples in [1, n_hist = {n_hist}] (fractional: linear interpolation); got {delay_steps!r}")
