@@ -219,6 +219,18 @@ def test_traced_tau_outside_the_buffer_is_not_clamped(jitted, plant2):
     assert bool(metrics(0.5).diverged) and not bool(metrics(0.005).diverged)
 
 
+def test_a_traced_vector_gain_is_named_by_its_shape(plant2):
+    """A vector k under jit was refused as "the controller's step must return the torque u with
+    shape (1,)"; its shape is known when traced, so it is named as eagerly. vmap over k, whose
+    traced k is a scalar, still runs."""
+    sc = paper_scenario(plant2, horizon_s=STEPS * DT)
+    run = lambda k, tau: jf.rollout(plant2, dfs(DT), DFSParams(k, tau), sc, output="metrics")  # noqa: E731
+    for k, tau, name in ((jnp.array([K, 60.0]), 0.005, "k"), (K, jnp.array([0.005, 0.004]), "tau_s")):
+        with pytest.raises(ValueError, match=rf"^{name} must be a scalar; got shape \(2,\) \(traced\)"):  # no $: JAX appends a note to errors raised while tracing
+            jax.jit(run)(k, tau)
+    assert jax.vmap(run, (0, None))(jnp.array([K, 60.0]), 0.005).peak_tip_m.shape == (2,)
+
+
 def test_traced_fractional_tau_with_nearest_reads_is_not_rounded(plant2):
     """check() refuses a nearest-sample DFS delay between samples; under jit (the README's
     tour, with a tuned 2.44 ms at 1 ms) it used to be rounded to a whole sample silently, and

@@ -103,8 +103,11 @@ def check_finite_scalar(name: str, value: Any, *, positive: bool = False, nonneg
 
 def check_scalar_param(name: str, value: Any, *, positive: bool = False) -> float | None:
     """``check_finite_scalar`` of a controller parameter that may be traced (a leaf ``jit``,
-    ``grad`` or ``vmap`` traces): ``None`` for a tracer, whose value is not known yet."""
+    ``grad`` or ``vmap`` traces): ``None`` for a tracer, whose value is not known yet, though
+    its shape is (a vector k under ``jit`` was blamed on the controller's torque shape)."""
     if isinstance(value, jax.core.Tracer):
+        if value.ndim != 0:
+            raise ValueError(f"{name} must be a scalar; got shape {value.shape} (traced)")
         return None
     return check_finite_scalar(name, value, positive=positive)
 
