@@ -135,9 +135,14 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
     shared = "shared by the batch" if batch else "one scenario"
     steps = scenario.force.shape[-2] if scenario.force.ndim >= 2 else -1
     if scenario.force.shape not in ((steps, 1), batch + (steps, 1)) or steps < 1:
-        raise ValueError(f"scenario.force must have shape (T, 1) with T >= 1 ({shared}){f', or {batch + (-1, 1)} with the batch first' if batch else ''}; got {scenario.force.shape}")
+        first = f", or ({', '.join(map(str, batch))}, T, 1) with the batch first" if batch else ""
+        raise ValueError(f"scenario.force must have shape (T, 1) with T >= 1 ({shared}){first}; got {scenario.force.shape}")
     if scenario.noise.shape not in ((steps, 2), batch + (steps, 2)):
-        raise ValueError(f"scenario.noise must have shape ({steps}, 2){f' or {batch + (steps, 2)}' if batch else ''}; got {scenario.noise.shape}")
+        # the horizon T is read from force: a force cut short blamed the noise alone
+        raise ValueError(
+            f"scenario.noise must have shape ({steps}, 2){f' or {batch + (steps, 2)}' if batch else ''}, the horizon T = {steps} of scenario.force; "
+            f"got {scenario.noise.shape} (force and noise hold one row per sample)"
+        )
     plant_batch = tuple(plant.Ad.shape[:-2])
     if plant_batch and plant_batch != batch:
         raise ValueError(f"a batch of plants {plant.Ad.shape} needs a batch of as many scenarios (scenario.x0 of shape {plant_batch + (n_x,)}); got scenario.x0 of shape {scenario.x0.shape}")

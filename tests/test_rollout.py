@@ -217,10 +217,14 @@ def test_bad_batches_are_refused_by_name(plant2):
         jf.rollout(plants, dfs(), params, scs)
     with pytest.raises(ValueError, match=r"a batch of plants .* needs a batch of as many scenarios"):
         jf.rollout(plants, dfs(), params, jax.tree.map(lambda a: a[0], scs))
-    with pytest.raises(ValueError, match=r"scenario.force must have shape \(T, 1\)"):
+    # the batch's shape in the message, with T for the horizon (it read -1)
+    with pytest.raises(ValueError, match=r"^scenario.force must have shape \(T, 1\) with T >= 1 \(shared by the batch\), or \(3, T, 1\) with the batch first; got \(2, 20, 1\)$"):
         jf.rollout(plant2, dfs(), params, scs._replace(force=scs.force[:2]))
     with pytest.raises(ValueError, match=r"scenario.noise must have shape"):
         jf.rollout(plant2, dfs(), params, scs._replace(noise=scs.noise[:, :10]))
+    # a force cut short is named as the horizon the noise is measured against (the noise alone was blamed)
+    with pytest.raises(ValueError, match=r"^scenario.noise must have shape \(10, 2\) or \(3, 10, 2\), the horizon T = 10 of scenario.force; got \(3, 20, 2\) \(force and noise hold one row per sample\)$"):
+        jf.rollout(plant2, dfs(), params, scs._replace(force=scs.force[:, :10]))
     with pytest.raises(ValueError, match="scenario.x0 must have shape"):
         jf.rollout(plant2, dfs(), params, scs._replace(x0=scs.x0[None]))
     with pytest.raises(ValueError, match=r"plant.dt must have shape \(2,\)"):
