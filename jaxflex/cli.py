@@ -689,7 +689,8 @@ def _stability(args: argparse.Namespace) -> int:
     n_modes = args.modes if args.modes is not None else config_modes or 2
     dt = args.dt if args.dt is not None else scenarios.dt
     print(_model_line(arm, n_modes, dt), file=sys.stderr)
-    typed = {"k": "--k", "tau_s": "--tau" if args.tau is not None else None, "tau_max_s": "--tau-max" if args.tau_max is not None else None,
+    # tau comes from --tau or its default here (never from --config): a refusal names the option
+    typed = {"k": "--k", "tau_s": "--tau" if args.tau is not None else "--tau (default 0.005 s)", "tau_max_s": "--tau-max" if args.tau_max is not None else None,
              "dt": "--dt" if args.dt is not None else None, "n_modes": "--modes" if args.modes is not None else None}
     if args.tau is None:
         args.tau = 0.005

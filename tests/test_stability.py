@@ -493,6 +493,18 @@ def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
     stability_report.run(tmp_path / "edge", tau_s=0.16, tau_max_s=0.16, n_k=2, n_tau=2, n_cheb=8)  # 160 samples: charted
 
 
+def test_cli_names_tau_beyond_the_chart_by_its_option(tmp_path, capsys):
+    """The tau refusal names --tau, typed or its default (it named the library's tau_s when
+    only --dt was typed, and 5 ms at dt = 1e-5 s is 500 samples)."""
+    from jaxflex import cli
+
+    assert cli.main(["stability", "--tau", "5", "--out", str(tmp_path / "a")]) == 2
+    assert "error: --tau must be at most 160 samples of dt = 0.001 s, 0.16 s, for the chart to hold it; got 5 s, 5000 samples" in capsys.readouterr().err
+    assert cli.main(["stability", "--dt", "1e-5", "--out", str(tmp_path / "b")]) == 2
+    assert "error: --tau (default 0.005 s) must be at most 160 samples of dt = 1e-05 s, 0.0016 s, for the chart to hold it; got 0.005 s, 500 samples" in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in "ab")
+
+
 def test_cli_tau_max_sets_the_chart_range(tmp_path, monkeypatch):
     """`--tau-max` reaches the chart (by default 1-40 ms for any delay up to 5 ms: a 1 ms delay
     sat at a fortieth of its height)."""
