@@ -589,8 +589,6 @@ def _arm_config(path: str | None):
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from jaxflex import plotting
     from tuning.calibrate import calibrate, to_toml
 
@@ -625,9 +623,9 @@ def _calibrate(args: argparse.Namespace) -> int:
     moved = [name for name, start in zip(result.fit, result.start) if not 0.1 <= float(getattr(result.beam, name)) / start <= 10]
     if moved:
         print(f"note: {', '.join(moved)} moved by more than 10x from the starting arm: check the units (Hz, not rad/s; SI constants in [beam]) and --hub", file=sys.stderr)
-    errors = np.abs(result.error_after_percent)
+    errors = abs(result.error_after_percent)
     if errors.max() > CALIBRATION_MISFIT_PERCENT:  # free-hub frequencies fitted as clamped left -34 % and +51 % with no word
-        worst = int(np.argmax(errors))
+        worst = int(errors.argmax())
         print(f"note: the calibrated arm still misses mode {worst + 1} by {errors[worst]:.3g} % (over {CALIBRATION_MISFIT_PERCENT:g} %): fitting {', '.join(result.fit)} "
               f"cannot match these frequencies; check --hub (the arm was held {result.hub}?), that they are the first modes in order, and their units", file=sys.stderr)
     owned = ("calibrated.toml", "calibration.json", "calibration.png", "identification.png")
