@@ -163,6 +163,11 @@ def test_run_diverged_counts_a_tip_beyond_the_arm():
     np.testing.assert_array_equal(run_diverged(blew_up, peak, 0.9), [True, True, False, False])
     np.testing.assert_array_equal(jax.jit(run_diverged)(blew_up, peak, 0.9), [True, True, False, False])
     assert bool(run_diverged(True, np.nan, 0.9)) and not bool(run_diverged(False, np.nan, 0.9))  # NaN counts through blew_up
+    for bad, shown in ((0.0, "0.0"), (-0.9, "-0.9"), (np.nan, "nan"), (np.inf, "inf")):
+        with pytest.raises(ValueError, match=rf"^length_m must be finite and > 0 \(m\); got {shown}$"):
+            run_diverged(blew_up, peak, bad)
+    with pytest.raises(ValueError, match=r"^length_m must be a scalar \(m\); got shape \(2,\)$"):
+        run_diverged(blew_up, peak, [0.9, 1.0])
 
 
 def test_reproduce_run_metrics_use_the_same_rule():

@@ -182,7 +182,13 @@ def run_diverged(blew_up: ArrayLike, peak_tip_m: ArrayLike, length_m: ArrayLike)
 
     Returns:
       bool, the broadcast shape of the arguments.
+
+    Raises:
+      ValueError: naming ``length_m`` when, concrete, it is not a finite number > 0 (a
+        length of 0 or NaN called every run, or none, diverged).
     """
+    if is_concrete(length_m):
+        check_finite_scalar("length_m", length_m, positive=True, unit="m")
     return jnp.logical_or(blew_up, jnp.asarray(peak_tip_m) > length_m)
 
 
