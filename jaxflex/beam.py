@@ -54,8 +54,9 @@ class BeamParams(NamedTuple):
       damping_ratio: modal damping ratio given to the two flexible modes of the 2-mode model
         of these parameters, from which the Rayleigh coefficients are derived (jaxflex
         convention; the paper gives no values). Ignored when both Rayleigh fields are set.
-      rayleigh_alpha: mass-proportional Rayleigh coefficient (1/s), or None to derive it.
-      rayleigh_beta: stiffness-proportional Rayleigh coefficient (s), or None to derive it.
+      rayleigh_alpha: mass-proportional Rayleigh coefficient (1/s). Give both Rayleigh
+        coefficients, or neither (None) to derive them from ``damping_ratio``.
+      rayleigh_beta: stiffness-proportional Rayleigh coefficient (s), with ``rayleigh_alpha``.
     """
 
     length_m: ArrayLike = 0.9
