@@ -288,12 +288,17 @@ def console() -> None:
     """The ``jaxflex`` console script: ``main()``'s status as the exit status. After Ctrl-C
     or SIGTERM the process ends at once, once its message is out: XLA may still be compiling on another
     thread, and the interpreter's shutdown around it crashed (a segmentation fault in 3 of 7
-    interrupts during a tune's compilation). Every file was already written or left as it was."""
+    interrupts during a tune's compilation). Every file was already written or left as it was.
+    After any other status Ctrl-C is ignored while the interpreter shuts down (a moment)."""
     code = main()
     if code in (130, 143):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)
+    # The command is done and its files are written: a Ctrl-C now, during the interpreter's
+    # shutdown, printed a KeyboardInterrupt traceback from JAX's exit callback.
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     sys.exit(code)
 
 
@@ -350,6 +355,7 @@ def _run(args: argparse.Namespace) -> int:
         start = time.perf_counter()
 
         def progress(msg: str) -> None:
+            _raise_pending()  # before each stage, and before the files replace the old ones
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
         print(_model_line(BeamParams(), check_n_modes(args.modes), DT), file=sys.stderr)
@@ -640,6 +646,7 @@ def _calibrate(args: argparse.Namespace) -> int:
             title = f"{os.path.basename(args.record)}: " + ", ".join(f"{f:.4g} Hz (damping {100 * z:.3g} %)" for f, z in zip(modes.frequencies_hz, modes.damping))
             plotting.save(plotting.identification(t, y, modes.times, modes.reconstruction, names, title), os.path.join(stage, "identification.png"))
         fileio.write_json(os.path.join(stage, "calibration.json"), summary)
+        _raise_pending()  # a Ctrl-C dropped while drawing stops the run before the files replace the old ones
     shown = "calibration.json, calibration.png" + (" and identification.png" if modes is not None else "")
     print(f"wrote {os.path.join(args.out, 'calibrated.toml')} (pass it as --config to tune, montecarlo or stability), {shown}")
     return 0
@@ -677,6 +684,11 @@ def _identify(args: argparse.Namespace) -> tuple[Any, tuple[Any, Any, list[str]]
     return modes, (t, y, names)
 
 
+def _progress_line(msg: str) -> None:
+    _raise_pending()  # before each stage, and before the files replace the old ones
+    print(msg, file=sys.stderr, flush=True)
+
+
 def _stability(args: argparse.Namespace) -> int:
     from jaxflex.analysis.stability import delay_steps_of
     from jaxflex.scenarios import ScenarioSpec
@@ -697,7 +709,7 @@ def _stability(args: argparse.Namespace) -> int:
         except ValueError:
             raise ValueError(f"--tau: its default, the paper's 0.005 s, is {args.tau / dt:g} samples of dt = {dt:g} s; pass --tau, a whole number of samples of dt") from None
     with _as_typed(typed):
-        result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, tau_max_s=args.tau_max, beam_params=arm, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+        result = run(args.out, k=args.k, tau_s=args.tau, n_modes=n_modes, dt=dt, tau_max_s=args.tau_max, beam_params=arm, progress=_progress_line)
     first, sampled = result["first_destabilising_delay_s"], result["first_destabilising_delay_sampled_s"]
     rk4 = result["spectral_radius_rk4"]
     arm_name = f"the arm of {args.config}" if values.get("beam") else "the paper's arm"

@@ -360,7 +360,9 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
     Args:
       out_dir: output folder (created if missing).
       n_modes: number of assumed modes (int >= 1; the paper uses 2).
-      progress: called with a short message before each stage (e.g. ``print``).
+      progress: called with a short message before each stage (e.g. ``print``), the last
+        just before the files replace ``out_dir``'s: an exception it raises (the CLI raises
+        a Ctrl-C that Python dropped) leaves ``out_dir`` as it was.
       params_file: tuned.json from ``jaxflex tune``; its gains are simulated on the paper
         scenario too and shown beside the paper's (table, figure, ``results.json["tuned"]``).
 
@@ -507,4 +509,5 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
 
         fileio.write_text(os.path.join(stage, "report.md"), _report_md(results))
         fileio.write_json(os.path.join(stage, "results.json"), results)
+        say(f"writing the files into {out_dir}")
     return results

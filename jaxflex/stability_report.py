@@ -65,7 +65,8 @@ def run(
       n_tau: chart rows (>= 2); default every sample up to tau_max_s, at most 80.
       n_cheb: Chebyshev intervals of the continuous-loop generator (>= 2).
       beam_params: the arm (plain numbers); ``None``: the paper's.
-      progress: called with a short message before each stage.
+      progress: called with a short message before each stage, the last just before the
+        files replace ``out_dir``'s: an exception it raises leaves ``out_dir`` as it was.
 
     Returns:
       The content of ``stability.json``.
@@ -201,4 +202,5 @@ def run(
     with fileio.replace_outputs(out_dir, (CHART_FILE, JSON_FILE), last=JSON_FILE) as stage:
         plotting.save(fig, os.path.join(stage, CHART_FILE))
         fileio.write_json(os.path.join(stage, JSON_FILE), result)
+        say(f"writing the files into {out_dir}")
     return result

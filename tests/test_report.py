@@ -5,6 +5,7 @@ import json
 import math
 import os
 import re
+import signal
 import stat
 import subprocess
 import sys
@@ -600,7 +601,6 @@ def test_cli_sigterm_ends_a_run_as_ctrl_c_does(tmp_path, capsys, monkeypatch):
     """SIGTERM (a scheduler's time limit, kill) ends a run as Ctrl-C does: staging files
     removed, the resume hint, status 143; it killed the process at once, leaving a .tmp-*
     folder and the progress bar's line unfinished, with no word on resuming."""
-    import signal
     import time
 
     import tuning.run
@@ -626,43 +626,45 @@ def test_cli_sigterm_ends_a_run_as_ctrl_c_does(tmp_path, capsys, monkeypatch):
     assert sorted(os.listdir(tmp_path / "t")) == ["checkpoint.npz"]  # no staging folder left
 
 
+def _drop_a_signal(signum):
+    """Send ``signum`` to this process so that its handler runs inside a garbage-collection
+    callback, where Python prints the handler's exception and drops it."""
+    import gc
+
+    sent = []
+
+    def callback(phase, info):
+        if phase == "start" and not sent:
+            sent.append(signum)
+            os.kill(os.getpid(), signum)  # handled before the callback returns: inside it
+
+    gc.callbacks.append(callback)
+    try:
+        gc.collect()
+    finally:
+        gc.callbacks.remove(callback)
+    assert sent == [signum]
+
+
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 def test_cli_a_signal_dropped_in_a_gc_callback_still_ends_the_run(tmp_path, capsys, monkeypatch):
     """A signal that lands while JAX's garbage-collection callback runs is raised inside that
     callback, where Python prints the exception and drops it: the run went on to the end and
     exited 0 (twice in about 45 interrupted tunes). The runs' loops raise it again after the
     step or chunk (tune's on_step, montecarlo's on_chunk), and main once the command is done."""
-    import gc
-    import signal
-
     import jaxflex.montecarlo
     import tuning.run
 
-    def drop_a_signal(signum):
-        sent = []
-
-        def callback(phase, info):
-            if phase == "start" and not sent:
-                sent.append(signum)
-                os.kill(os.getpid(), signum)  # handled before the callback returns: inside it
-
-        gc.callbacks.append(callback)
-        try:
-            gc.collect()
-        finally:
-            gc.callbacks.remove(callback)
-        assert sent == [signum]
-
     def loop_of(name):
         def run(config, out, **kwargs):
-            drop_a_signal(signal.SIGTERM)
+            _drop_a_signal(signal.SIGTERM)
             kwargs[name](1)  # the loop's check after a step or chunk
             raise AssertionError(f"{name} did not raise the dropped SIGTERM")
 
         return run
 
     def command_to_the_end(args):
-        drop_a_signal(signal.SIGINT)
+        _drop_a_signal(signal.SIGINT)
         return 0
 
     ignored = []
@@ -687,6 +689,40 @@ def test_cli_a_signal_dropped_in_a_gc_callback_still_ends_the_run(tmp_path, caps
     assert not ignored
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_cli_a_signal_dropped_while_drawing_leaves_the_folder_as_it_was(tmp_path, capsys, monkeypatch):
+    """A Ctrl-C dropped while a figure was drawn (1 in about 17 interrupts of reproduce
+    there) let the run replace every file of the folder, and then exit 130 as interrupted.
+    The commands that write their files at the end check for it before the files replace
+    the old ones."""
+    from jaxflex import plotting
+
+    save, drawn = plotting.save, []
+
+    def save_and_drop(fig, path):
+        save(fig, path)
+        if not drawn:
+            drawn.append(os.path.basename(path))
+            _drop_a_signal(signal.SIGINT)
+
+    monkeypatch.setattr(plotting, "save", save_and_drop)
+    before_int = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal
+    try:
+        for command, last in ((["calibrate", "--freqs", "15.5", "46.2"], "calibration.json"),
+                              (["stability"], "stability.json"),
+                              (["reproduce", "--modes", "1"], "results.json")):
+            out = tmp_path / command[0]
+            out.mkdir()
+            (out / last).write_text("an earlier run's")
+            drawn.clear()
+            assert cli.main([*command, "--out", str(out)]) == 130, command
+            assert drawn, command
+            assert f"jaxflex {command[0]}: interrupted" in capsys.readouterr().err
+            assert os.listdir(out) == [last] and (out / last).read_text() == "an earlier run's", command
+    finally:
+        signal.signal(signal.SIGINT, before_int)
+
+
 def test_console_script_ends_at_once_after_an_interrupt(monkeypatch):
     """The installed `jaxflex` ends an interrupted run with os._exit(130), skipping the
     interpreter's shutdown (which crashed while XLA was still compiling); other statuses
@@ -698,11 +734,19 @@ def test_console_script_ends_at_once_after_an_interrupt(monkeypatch):
         raise SystemExit(code)
 
     monkeypatch.setattr(cli.os, "_exit", fake_exit)
-    for status in (130, 143, 2, 0):
-        monkeypatch.setattr(cli, "main", lambda status=status: status)
-        with pytest.raises(SystemExit) as info:
-            cli.console()
-        assert info.value.code == status
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal
+    try:
+        for status in (130, 143, 2, 0):
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            monkeypatch.setattr(cli, "main", lambda status=status: status)
+            with pytest.raises(SystemExit) as info:
+                cli.console()
+            assert info.value.code == status
+            # a finished command ignores Ctrl-C while the interpreter shuts down: JAX's exit
+            # callback printed a KeyboardInterrupt traceback, and the status stayed 0
+            assert (signal.getsignal(signal.SIGINT) is signal.SIG_IGN) == (status in (2, 0)), status
+    finally:
+        signal.signal(signal.SIGINT, before)
     assert ended == [("os._exit", 130), ("os._exit", 143)]
     scripts = fileio.read_toml(ROOT / "pyproject.toml")["project"]["scripts"]
     assert scripts == {"jaxflex": "jaxflex.cli:console"}
