@@ -322,7 +322,8 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
         assert json.loads(bytes(data["meta"]).decode())["step"] == 4  # lost at most one interval
     with pytest.raises(ValueError, match=r"pass --resume \(resume=True\) to continue it, or choose another --out \(out_dir\)"):
         tune(cfg, tmp_path / "cut", progress=False)  # never overwrite a run silently
-    resumed = tune(cfg, tmp_path / "cut", resume=True, progress=False)
+    # saved more often after the interruption: when a run is saved is not what it computes
+    resumed = tune(dataclasses.replace(cfg, checkpoint_every=3), tmp_path / "cut", resume=True, progress=False)
     assert resumed["step"] == full["step"] == 30
     # validated at steps 0, eval_every, 2 eval_every, ... and at the final point, after the last update
     assert [h["step"] for h in full["history"] if h.get("val_objective") is not None] == [0, 5, 10, 15, 20, 25, 30]
@@ -632,19 +633,27 @@ def test_checkpoint_round_trips_an_infinite_best_value(tmp_path):
 
 
 def test_tuned_json_is_there_only_for_a_finished_run(tmp_path, monkeypatch):
-    """A refused resume keeps the finished run's tuned.json; a resume removes it until its own
-    end, so that an interrupted one leaves no tuned.json older than checkpoint.npz."""
+    """A refused resume keeps the finished run's tuned.json and figures; a resume removes
+    them until its own end, so that an interrupted one leaves no tuned.json or figure older
+    than checkpoint.npz (its figures stayed, drawn for the shorter run)."""
     import tuning.run
     from tuning.run import run_tune
 
-    monkeypatch.setattr(tuning.run, "_figures", lambda state, out_dir, paper_objective: [])  # figures: tested elsewhere
+    figures = ["loss.png", "psd_0.png", "psd_1.png", "response_0.png", "response_1.png"]
 
+    def draw(state, out_dir, paper_objective):  # the figures themselves: tested elsewhere
+        for name in figures:
+            (tmp_path / name).write_text(f"after {state['step']} steps")
+        return figures
+
+    monkeypatch.setattr(tuning.run, "_figures", draw)
+    (tmp_path / "response_notes.png").write_text("the user's")
     config = TuneConfig(controller="dfs", steps=2, eval_every=1, **SHARED)
     run_tune(config, tmp_path, progress=False)
     assert json.loads((tmp_path / "tuned.json").read_text())["steps_run"] == 2
     with pytest.raises(ValueError, match="another configuration"):
         run_tune(dataclasses.replace(config, seed=1), tmp_path, resume=True, progress=False)
-    assert (tmp_path / "tuned.json").exists()
+    assert (tmp_path / "tuned.json").exists() and all((tmp_path / name).exists() for name in figures)
 
     def interrupt(step):
         if step == 3:
@@ -653,6 +662,8 @@ def test_tuned_json_is_there_only_for_a_finished_run(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         run_tune(dataclasses.replace(config, steps=4), tmp_path, resume=True, progress=False, on_step=interrupt)
     assert not (tmp_path / "tuned.json").exists()
+    assert not any((tmp_path / name).exists() for name in figures)
+    assert (tmp_path / "response_notes.png").read_text() == "the user's"
 
 
 @pytest.mark.parametrize("meta", [b"", b"not a zip file", json.dumps({"step": 3}).encode(), json.dumps([1, 2]).encode()])

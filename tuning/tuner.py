@@ -134,10 +134,12 @@ class TuneConfig:
 
     def fingerprint_fields(self) -> dict[str, Any]:
         """What a resumed run must share with the checkpoint: everything but ``steps`` (more
-        steps may be asked of a resumed run), and the dtype and the program
+        steps may be asked of a resumed run) and ``checkpoint_every`` (which changes when
+        the run is saved, not what it computes), and the dtype and the program
         (``fileio.program``), as plain JSON values."""
         d = self.to_dict()
         d.pop("steps")
+        d.pop("checkpoint_every")
         d["dtype"] = str(jnp.zeros(()).dtype)
         d["program"] = fileio.program()
         return json.loads(json.dumps(fileio.to_jsonable(d)))
