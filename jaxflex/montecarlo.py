@@ -299,12 +299,13 @@ def _run_locked(config: MCConfig, out_dir: str, resume: bool, progress: bool, fi
         # another set of chunks.
         if os.path.exists(summary_path):
             os.remove(summary_path)
-    elif resume:
-        raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no {META}); leave out --resume (resume=False) to start one")
     elif os.path.isdir(chunks_dir) and os.listdir(chunks_dir):
         # Chunks without the metadata that says which configuration made them: a new run
-        # would take them as its own.
-        raise ValueError(f"{chunks_dir} holds chunk files but {out_dir} has no {META} to say which run wrote them; choose another --out (out_dir)")
+        # would take them as its own, and a resumed one cannot check them.
+        raise ValueError(f"{'--resume: ' if resume else ''}{chunks_dir} holds chunk files but {out_dir} has no {META} to say which run wrote them, "
+                         f"so they cannot be used: delete {chunks_dir} and start again without --resume, or choose another --out (out_dir)")
+    elif resume:
+        raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no {META}); leave out --resume (resume=False) to start one")
     os.makedirs(chunks_dir, exist_ok=True)
     runner = _Runner(config)
 
@@ -366,8 +367,10 @@ def _load_chunk(path: str, chunk: int, n_modes: int) -> dict[str, np.ndarray]:
     try:
         with np.load(path) as data:
             rows = {k: data[k] for k in data.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-        raise ValueError(f"--resume: cannot read {path} ({type(err).__name__}: {err}); {fix}") from None
+    except OSError as err:
+        raise ValueError(f"--resume: cannot read {path} ({err}); {fix}") from None
+    except (ValueError, EOFError, zipfile.BadZipFile):  # NumPy's message for some junk is about pickles
+        raise ValueError(f"--resume: {path} is damaged (not a chunk's .npz archive); {fix}") from None
     if set(rows) != expected or any(v.shape != (chunk,) for v in rows.values()):
         got = ", ".join(f"{k} {v.shape}" for k, v in sorted(rows.items()))
         raise ValueError(f"--resume: {path} does not hold this run's {chunk}-scenario columns ({got}); {fix}")

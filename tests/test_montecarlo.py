@@ -229,7 +229,10 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     chunk = tmp_path / "cut" / "chunks" / "chunk_000003.npz"
     good = chunk.read_bytes()
     chunk.write_bytes(good[: len(good) // 2])
-    with pytest.raises(ValueError, match=r"--resume: cannot read .*chunk_000003.npz .*; delete it and pass --resume again"):
+    with pytest.raises(ValueError, match=r"--resume: .*chunk_000003.npz is damaged \(not a chunk's .npz archive\); delete it and pass --resume again"):
+        run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
+    chunk.write_bytes(b"\x80junk")  # NumPy's own message for this one was about pickled data
+    with pytest.raises(ValueError, match=r"--resume: .*chunk_000003.npz is damaged \(not a chunk's .npz archive\); delete it and pass --resume again"):
         run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
     np.savez(chunk, tip_ise=np.zeros(15))
     with pytest.raises(ValueError, match=r"chunk_000003.npz does not hold this run's 15-scenario columns \(tip_ise \(15,\)\)"):
@@ -241,8 +244,12 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     # chunks without montecarlo.json cannot be matched to a configuration: a new run would
     # have taken them as its own
     (tmp_path / "cut" / "montecarlo.json").unlink()
-    with pytest.raises(ValueError, match="holds chunk files but .* has no montecarlo.json"):
+    fix = r"has no montecarlo.json to say which run wrote them, so they cannot be used: delete .*chunks and start again without --resume, or choose another --out"
+    with pytest.raises(ValueError, match="holds chunk files but .*" + fix):
         run_montecarlo(MCConfig(controller="fuzzy", n_scenarios=70, chunk=15, scenarios=SPEC), tmp_path / "cut", progress=False)
+    # resumed, it was told to leave out --resume, which then sent it to another --out
+    with pytest.raises(ValueError, match="--resume: .*holds chunk files but .*" + fix):
+        run_montecarlo(config, tmp_path / "cut", resume=True, progress=False)
 
 
 # FULL_CONFIG through the command line, in float64 so that the statistics can be compared to
