@@ -229,7 +229,8 @@ def changed_fields(before: Any, now: Mapping[str, Any]) -> str:
     each key of ``now`` whose value differs from the one recorded in ``before`` (a folder's
     configuration, as read back) with both values, nested tables by dotted path; or ``"the
     configuration changed"`` when no key both share differs. A key one side lacks (a record
-    written by an older version) is no change named."""
+    written by an older version) is no change named. A changed ``program`` (``program()``)
+    gets a hint, since no option can match it."""
 
     def differences(before: Any, now: Any, path: str) -> list[str]:
         if isinstance(before, Mapping) and isinstance(now, Mapping):
@@ -237,7 +238,11 @@ def changed_fields(before: Any, now: Mapping[str, Any]) -> str:
         return [] if before == now else [f"{path[:-1]}: {before!r} -> {now!r}"]
 
     named = differences(before if isinstance(before, Mapping) else {}, now, "")
-    return f"changed: {', '.join(named)}" if named else "the configuration changed"
+    if not named:
+        return "the configuration changed"
+    upgraded = any(d.startswith("program: ") for d in named)  # no option undoes that one
+    hint = "; no option matches another program: start again in another --out, or resume with the program that wrote it" if upgraded else ""
+    return f"changed: {', '.join(named)}{hint}"
 
 
 def write_json(path: str | os.PathLike, data: Any) -> None:

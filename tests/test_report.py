@@ -396,7 +396,9 @@ def test_digest_ignores_key_order_and_changed_fields_names_what_differs():
     assert fileio.changed_fields(a, {**b, "seed": 3, "new_option": 1}) == "changed: seed: 0 -> 3"
     assert fileio.changed_fields(a, {**b, "new_option": 1}) == "the configuration changed"
     assert fileio.changed_fields(None, a) == "the configuration changed"
-    assert fileio.changed_fields({**a, "program": "x"}, {**a, "program": "y", "seed": 2}) == "changed: program: 'x' -> 'y', seed: 0 -> 2"
+    # another program (an upgrade, an edited source) is no option to change back: it says so
+    assert fileio.changed_fields({**a, "program": "x"}, {**a, "program": "y", "seed": 2}) == (
+        "changed: program: 'x' -> 'y', seed: 0 -> 2; no option matches another program: start again in another --out, or resume with the program that wrote it")
     # each side of each change, into nested tables (it said "changed: n_scenarios, scenarios")
     now = {**a, "scenarios": {"dt": 0.002, "horizon_s": 3.0, "new": 1}, "percentiles": [5, 95], "beam": None}
     assert fileio.changed_fields({**a, "percentiles": [5, 50, 95], "beam": {"length_m": 1.0}}, now) == (
