@@ -127,8 +127,8 @@ def test_reported_numbers_against_independent_computations(reproduced):
 
     # settling times: the 2 % band of the README
     for run in ("dfs", "fuzzy"):
-        for signal, values in (("q1", traj[run].x[:, 1]), ("tip_deflection_m", traj[run].z[:, 1])):
-            assert res["runs"][run][signal]["settling_time_s"] == pytest.approx(_settling_reference(np.asarray(values), 1e-3), abs=1e-12)
+        for name, values in (("q1", traj[run].x[:, 1]), ("tip_deflection_m", traj[run].z[:, 1])):
+            assert res["runs"][run][name]["settling_time_s"] == pytest.approx(_settling_reference(np.asarray(values), 1e-3), abs=1e-12)
 
     # Rayleigh: both flexible modes of the 2-mode model at the damping ratio
     w1, w2 = 2 * np.pi * modes
@@ -846,10 +846,10 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys, monke
     assert "model: 2 mode(s) at 13.32, 36.47 Hz with damping ratios 0.01, 0.01 in flexible modes 1-2 (damping_ratio = 0.01 of the 2-mode model), sampled every 0.001 s" in printed.err
     res = json.loads((out / "results.json").read_text())
     ours, paper = res["tuned"]["run"], res["runs"]["dfs"]
-    for signal in ("q1", "tip_deflection_m"):
-        for key, value in paper[signal].items():
+    for name in ("q1", "tip_deflection_m"):
+        for key, value in paper[name].items():
             if isinstance(value, float):
-                np.testing.assert_allclose(ours[signal][key], value, rtol=1e-12, err_msg=f"{signal}.{key}")
+                np.testing.assert_allclose(ours[name][key], value, rtol=1e-12, err_msg=f"{name}.{key}")
     assert res["tuned"]["beam"]["length_m"] == 0.6
     # report.md's comparison on the console too (see test_tuned_line_puts_each_side_in_its_place)
     assert f"tuned dfs ({tuned}): k = 55, tau_s = 0.005 (paper: k = 55, tau_s = 0.005); q1 settling " in printed.out
@@ -888,9 +888,9 @@ def test_reproduce_with_dfs_fuzzy_params_compares_the_same_loop(tmp_path):
     res = json.loads((out / "results.json").read_text())
     ours, paper = res["tuned"]["run"], res["tuned"]["paper_run"]
     assert res["tuned"]["paper_params"] == {"k": 55.0, "tau_s": 0.005, "k1": 1.02, "k2": 0.3, "k3": 1.0}
-    for signal in ("q1", "tip_deflection_m"):
-        for key, value in paper[signal].items():
-            np.testing.assert_allclose(ours[signal][key], value, rtol=1e-12, err_msg=f"{signal}.{key}")
+    for name in ("q1", "tip_deflection_m"):
+        for key, value in paper[name].items():
+            np.testing.assert_allclose(ours[name][key], value, rtol=1e-12, err_msg=f"{name}.{key}")
     assert paper["tip_deflection_m"]["ise"] != res["runs"]["fuzzy"]["tip_deflection_m"]["ise"]  # another loop than fuzzy alone
     rows = [line for line in (out / "report.md").read_text().splitlines() if line.startswith(("| paper | k = 55", "| tuned | k = 55"))]
     assert len(rows) == 2 and rows[0].removeprefix("| paper") == rows[1].removeprefix("| tuned"), rows
