@@ -303,7 +303,7 @@ def _run_locked(config: MCConfig, out_dir: str, resume: bool, progress: bool, fi
         # Chunks without the metadata that says which configuration made them: a new run
         # would take them as its own, and a resumed one cannot check them.
         raise ValueError(f"{'--resume: ' if resume else ''}{chunks_dir} holds chunk files but {out_dir} has no {META} to say which run wrote them, "
-                         f"so they cannot be used: delete {chunks_dir} and start again without --resume, or choose another --out (out_dir)")
+                         f"so they cannot be used: delete {chunks_dir} and start again{' without --resume' if resume else ''}, or choose another --out (out_dir)")
     elif resume:
         raise ValueError(f"--resume: {out_dir} holds no Monte Carlo run (no {META}); leave out --resume (resume=False) to start one")
     os.makedirs(chunks_dir, exist_ok=True)

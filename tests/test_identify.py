@@ -180,8 +180,8 @@ def test_window_leaves_out_the_excitation():
         (np.arange(100) * DT, np.ones(99), {}, "same N"),
         (np.arange(100) * DT, np.r_[np.nan, np.ones(99)], {}, "must be finite"),
         (np.arange(40) * DT, np.ones(40), {}, "holds 40 samples; 2 modes need at least 45"),
-        (np.arange(100) * DT, np.ones(100), dict(start_s=1.0), r"start_s must be within the record, from 0 to 0.099 s \(t's clock\); got 1 s"),
-        (np.arange(100) * DT, np.ones(100), dict(end_s=-0.5), r"end_s must be within the record, from 0 to 0.099 s"),
+        (np.arange(100) * DT, np.ones(100), dict(start_s=1.0), r"start_s must be before the record's last sample, at 0.099 s \(t's clock\); got 1 s"),
+        (np.arange(100) * DT, np.ones(100), dict(end_s=-0.5), r"end_s must be after the record's first sample, at 0 s \(t's clock\); got -0.5 s"),
         (np.arange(100) * DT, np.ones(100), dict(start_s=0.05, end_s=0.01), "end_s must be after start_s"),
         (np.arange(100) * DT, np.ones(100), dict(start_s=float("nan")), "start_s must be a finite time"),
         (np.arange(100) * DT, np.ones(100), dict(end_s="1"), "end_s must be a finite time"),
@@ -253,7 +253,7 @@ def test_cli_record_errors_name_options(tmp_path, capsys):
         (["--record", record, "--damping", "0.01"], "error: --damping: with --record the damping ratios come from the record"),
         (["--freqs", "13", "--start", "0.1"], "error: --start, --end and --record-modes apply to --record only"),
         (["--record", record, "--start", "0.19"], "error: --record .*r.csv: the window 0.19-0.199 s holds 10 samples"),
-        (["--record", record, "--start", "5"], r"error: --start must be within the record, from 0 to 0.199 s \(t's clock\); got 5 s"),
+        (["--record", record, "--start", "5"], r"error: --start must be before the record's last sample, at 0.199 s \(t's clock\); got 5 s"),
         (["--record", record, "--start", "0.15", "--end", "0.1"], r"error: --end must be after --start; got --start = 0.15 s, --end = 0.1 s"),
         (["--record", record, "--record-modes", "3"], "error: --record .*: found 1 mode\\(s\\) above the noise in the window \\(30 Hz\\), not the 3"),
         (["--record", str(tmp_path / "none.csv")], "error: --record: cannot read"),
@@ -342,6 +342,17 @@ def test_lag_span_is_that_of_the_lags_fitted():
     y = np.exp(-1.0 * tt) * np.sin(2 * np.pi * 20 * tt)
     assert identify_modes(tt, y, 1).lag_span_s == pytest.approx(MAX_ROWS * DT, rel=1e-9)
     assert identify_modes(tt[:1000], y[:1000], 1).lag_span_s == pytest.approx(333 * DT, rel=1e-9)
+
+
+def test_a_window_reaching_past_the_record_is_cut_to_it():
+    """Only a window wholly outside the record is refused: one whose ends reach past it (an
+    end_s of 3 s on a record whose last sample is at 2.999 s) uses the record's ends."""
+    tt = np.arange(3000) * DT
+    y = np.exp(-0.5 * tt) * np.sin(2 * np.pi * 20 * tt)
+    whole, wider = identify_modes(tt, y, 1), identify_modes(tt, y, 1, start_s=-0.5, end_s=3.0)
+    np.testing.assert_array_equal(wider.frequencies_hz, whole.frequencies_hz)
+    np.testing.assert_array_equal(wider.damping, whole.damping)
+    assert (wider.start_s, wider.end_s) == (whole.start_s, whole.end_s) == (0.0, 2.999)
 
 
 def test_a_window_of_no_length_is_refused_as_such():

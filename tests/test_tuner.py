@@ -21,6 +21,7 @@ from tests.helpers import tree_allclose
 from jaxflex.analysis import stability
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
+from tuning.run import FIGURES
 from tuning.tuner import CHECKPOINT, Problem, TuneConfig, summarize, tune
 
 RTOL_FD = 1e-5  # central differences, float64
@@ -611,6 +612,7 @@ def test_cli_tune_with_toml_config(tmp_path, capsys):
     assert f"sampled-loop spectral radius {st['spectral_radius']:.8f}, {'stable' if st['stable'] else 'UNSTABLE'} (decay rate" in out
     for name in saved["figures"]:
         assert (tmp_path / "o" / name).read_bytes()[:4] == b"\x89PNG"
+    assert sorted(saved["figures"]) == sorted(FIGURES)  # every figure a run may draw (paper and 3 held-out scenarios): what the next run removes
     bad = tmp_path / "bad.toml"
     bad.write_text("learning_rat = 0.1\n")
     assert cli.main(["tune", "--config", str(bad), "--out", str(tmp_path / "b"), "--no-progress"]) == 2
@@ -640,6 +642,7 @@ def test_tuned_json_is_there_only_for_a_finished_run(tmp_path, monkeypatch):
     from tuning.run import run_tune
 
     figures = ["loss.png", "psd_0.png", "psd_1.png", "response_0.png", "response_1.png"]
+    assert set(figures) <= set(FIGURES)
 
     def draw(state, out_dir, paper_objective):  # the figures themselves: tested elsewhere
         for name in figures:
@@ -647,7 +650,9 @@ def test_tuned_json_is_there_only_for_a_finished_run(tmp_path, monkeypatch):
         return figures
 
     monkeypatch.setattr(tuning.run, "_figures", draw)
-    (tmp_path / "response_notes.png").write_text("the user's")
+    theirs = ["response_notes.png", "response_1_old.png", "psd_2020.png"]
+    for name in theirs:
+        (tmp_path / name).write_text("the user's")
     config = TuneConfig(controller="dfs", steps=2, eval_every=1, **SHARED)
     run_tune(config, tmp_path, progress=False)
     assert json.loads((tmp_path / "tuned.json").read_text())["steps_run"] == 2
@@ -663,7 +668,7 @@ def test_tuned_json_is_there_only_for_a_finished_run(tmp_path, monkeypatch):
         run_tune(dataclasses.replace(config, steps=4), tmp_path, resume=True, progress=False, on_step=interrupt)
     assert not (tmp_path / "tuned.json").exists()
     assert not any((tmp_path / name).exists() for name in figures)
-    assert (tmp_path / "response_notes.png").read_text() == "the user's"
+    assert all((tmp_path / name).read_text() == "the user's" for name in theirs)
 
 
 @pytest.mark.parametrize("meta", [b"", b"not a zip file", json.dumps({"step": 3}).encode(), json.dumps([1, 2]).encode()])

@@ -194,9 +194,11 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
         raise ValueError("t must be strictly ascending (s)")
     lo = t[0] if start_s is None else _time("start_s", start_s)
     hi = t[-1] if end_s is None else _time("end_s", end_s)
-    for name, given, value in (("start_s", start_s, lo), ("end_s", end_s, hi)):
-        if given is not None and not t[0] <= value <= t[-1]:
-            raise ValueError(f"{name} must be within the record, from {t[0]:g} to {t[-1]:g} s (t's clock); got {value:g} s")
+    # a window reaching past the record is cut to it; one wholly outside it is refused
+    if start_s is not None and lo >= t[-1]:
+        raise ValueError(f"start_s must be before the record's last sample, at {t[-1]:.10g} s (t's clock); got {lo:.10g} s")
+    if end_s is not None and hi <= t[0]:
+        raise ValueError(f"end_s must be after the record's first sample, at {t[0]:.10g} s (t's clock); got {hi:.10g} s")
     if hi <= lo:
         raise ValueError(f"end_s must be after start_s; got start_s = {lo:g} s{' (the first sample)' if start_s is None else ''}, "
                          f"end_s = {hi:g} s{' (the last sample)' if end_s is None else ''}")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import glob
+import contextlib
 import os
 import sys
 from typing import Any, Callable
@@ -17,8 +17,9 @@ from jaxflex.scenarios import scenario_modes_hz, scenario_plant
 from tuning.tuner import Problem, TuneConfig, summarize, tune
 
 N_SHOWN_HELDOUT = 3
-FIGURE_PATTERNS = ("loss.png", "response_[0-9]*.png", "psd_[0-9]*.png")
-"""The figures ``run_tune`` draws: the loss, then responses and PSDs numbered from 0."""
+FIGURES = ("loss.png", *(f"{kind}_{idx}.png" for kind in ("response", "psd") for idx in range(N_SHOWN_HELDOUT + 1)))
+"""Every figure ``run_tune`` may draw: the loss, and the responses and PSDs of the paper
+scenario and of up to ``N_SHOWN_HELDOUT`` held-out ones, numbered from 0."""
 
 
 def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> list[str]:
@@ -63,18 +64,18 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
 def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, on_step: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Tune, then write ``tuned.json`` (atomically, last), ``history.csv`` and figures into ``out_dir``.
 
-    ``tuned.json`` is there only when the run has finished: resuming removes the previous one
-    and its figures first (once the checkpoint has been checked), and the end of the run
-    writes them anew."""
+    ``tuned.json`` is there only when the run has finished: a run removes the folder's
+    previous one and its figures (``FIGURES``) first (once the folder and any checkpoint have
+    been checked), and its end writes them anew."""
     out_dir = os.fspath(out_dir)
     result = os.path.join(out_dir, "tuned.json")
 
     def discard_previous_result() -> None:
         # A resumed run's tuned.json and figures are rewritten at its end; until then the
         # previous ones would describe fewer steps than checkpoint.npz and history.csv.
-        for pattern in (*FIGURE_PATTERNS, "tuned.json"):
-            for path in glob.glob(os.path.join(glob.escape(out_dir), pattern)):
-                os.remove(path)
+        for name in (*FIGURES, "tuned.json"):
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(out_dir, name))
 
     with fileio.run_lock(out_dir, "out_dir (--out)"):  # tune's, held on to the figures and tuned.json
         state = tune(config, out_dir, resume=resume, progress=progress, on_step=on_step, on_start=discard_previous_result)
