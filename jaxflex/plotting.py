@@ -186,8 +186,9 @@ def reduction_bars(reductions: Mapping[str, Mapping[str, Sequence[float]]], pape
     return fig
 
 
-def surface(e: np.ndarray, e_dot: np.ndarray, values: np.ndarray, title: str = "Fuzzy control surface") -> plt.Figure:
-    """3-D control surface over the normalised (angle, velocity) square; values [n_e, n_edot]."""
+def surface(e: np.ndarray, e_dot: np.ndarray, values: np.ndarray, title: str = "Fuzzy control surface", note: str | None = None) -> plt.Figure:
+    """3-D control surface over the normalised (angle, velocity) square; values [n_e, n_edot];
+    ``note``, if given, is written under it."""
     fig = plt.figure(figsize=(6.5, 5.0))
     ax = fig.add_subplot(projection="3d")
     ee, dd = np.meshgrid(e, e_dot, indexing="ij")
@@ -195,8 +196,12 @@ def surface(e: np.ndarray, e_dot: np.ndarray, values: np.ndarray, title: str = "
     ax.set_xlabel("Hub angle (normalised)")
     ax.set_ylabel("Hub velocity (normalised)")
     ax.set_zlabel("Torque (normalised)")
+    ax.set_xticks(np.linspace(-1.0, 1.0, 5))  # every 0.25 crowded the 3-D axes' labels
+    ax.set_yticks(np.linspace(-1.0, 1.0, 5))
     ax.set_title(title)
-    fig.tight_layout()
+    if note:
+        fig.text(0.5, 0.01, textwrap.fill(note, 90), ha="center", va="bottom", fontsize=8, color="0.3")
+    fig.tight_layout(rect=(0.0, 0.06 if note else 0.0, 1.0, 1.0))
     return fig
 
 
@@ -284,6 +289,7 @@ def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title:
         ax.xaxis.get_offset_text().set_visible(False)
         label = labels.get(name, name) + (f" (ticks: {offset})" if offset else "")
         ax.set_xlabel(textwrap.fill(label, 60), fontsize=7)
+        ax.set_ylabel("runs", fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
     return fig

@@ -497,7 +497,8 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         grid = jnp.linspace(-1.0, 1.0, 41, dtype=dtype)
         fparams = fuzzy_params(1.02, 0.30, 1.0, dtype=dtype)
         surf = jax.vmap(lambda e: jax.vmap(lambda v: fuzzy_surface(fparams, e, v))(grid))(grid)
-        plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf)), os.path.join(stage, "fig4_fuzzy_surface.png"))
+        no_rule = "flat at 0 where none of the paper's 11 rules fires: most of the four corners, |angle| and |velocity| both over 0.5"
+        plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf), note=no_rule), os.path.join(stage, "fig4_fuzzy_surface.png"))
 
         if tuned is not None:
             paper_gains = f"{plotting.LABELS[tuned.name]} (paper gains)"  # the legend said "DFS" beside "tuned dfs"

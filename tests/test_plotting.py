@@ -227,3 +227,14 @@ def test_stability_chart_legend_sits_under_the_chart_and_names_only_what_is_draw
     ]
     stable = plotting.stability_chart(k, tau, np.full((12, 7), 0.99), np.full((12, 7), -1.0), np.full(7, np.inf))
     assert [t.get_text() for t in stable.axes[0].get_legend().get_texts()] == ["stable (both)"]
+
+
+def test_surface_writes_its_note_and_histograms_name_their_counts():
+    """The fuzzy surface's flat zero corners looked like a plotting fault (a figure walkthrough):
+    reproduce writes why under it. Histogram counts had no axis label."""
+    grid = np.linspace(-1.0, 1.0, 5)
+    fig = plotting.surface(grid, grid, np.zeros((5, 5)), note="flat at 0 where no rule fires")
+    assert [t.get_text() for t in fig.texts] == ["flat at 0 where no rule fires"]
+    assert not plotting.surface(grid, grid, np.zeros((5, 5))).texts
+    fig = plotting.histograms({"a": np.arange(10.0), "b": np.arange(5.0)}, {}, "t")
+    assert [ax.get_ylabel() for ax in fig.axes[:2]] == ["runs", "runs"]
