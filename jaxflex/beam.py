@@ -374,10 +374,13 @@ def natural_frequencies_hz(params: BeamParams, n_modes: int = 2, hub: str = "fre
     n_modes = check_n_modes(n_modes)
     check_hub(hub)
     check_beam_params(params)
+    check_beam_params(params, structural_dtype(params))  # 1e39 N/m^2 is inf in float32: NaN frequencies
     M, K, *_ = _structural(params, n_modes)
-    if hub == "clamped":
-        return jnp.sqrt(_natural_omegas_sq(M[1:, 1:], K[1:, 1:])) / (2.0 * jnp.pi)
-    return _flexible_omegas(M, K) / (2.0 * jnp.pi)
+    omegas = jnp.sqrt(_natural_omegas_sq(M[1:, 1:], K[1:, 1:])) if hub == "clamped" else _flexible_omegas(M, K)
+    if not isinstance(omegas, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(omegas))):
+        raise ValueError(f"the natural frequencies of the {n_modes}-mode model must be finite in {omegas.dtype}; got inf or NaN for {params} "
+                         "(check the units, or compute in float64 with jax_enable_x64, --x64)")
+    return omegas / (2.0 * jnp.pi)
 
 
 def _exact_determinant(lam: float, mu: float, j: float, r: float) -> float:

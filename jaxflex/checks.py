@@ -68,6 +68,14 @@ def instance(name: str, value: Any, expected: type | tuple[type, ...], build: st
     return value
 
 
+def callback(name: str, value: Any, called_with: str) -> Any:
+    """``value`` when it is None or callable; else ``ValueError`` naming ``name`` and what it is
+    called with, before a long run would fail at its first call."""
+    if value is not None and not callable(value):
+        raise ValueError(f"{name} must be None or a function called with {called_with}; got {type(value).__name__} {value!r}")
+    return value
+
+
 def float_dtype(name: str, dtype: Any) -> np.dtype:
     """``dtype`` (``None``: JAX's default float) as a NumPy dtype when it is a floating one;
     an integer dtype would truncate every value cast to it (a 5 ms delay to 0)."""

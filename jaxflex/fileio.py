@@ -87,6 +87,8 @@ def run_lock(folder: str | os.PathLike, name: str = "out_dir") -> Iterator[None]
     ``tune``). Without ``fcntl`` (not POSIX), or on a file system without locks, nothing is
     held.
     """
+    if not isinstance(folder, (str, os.PathLike)) or not os.fspath(folder):
+        raise ValueError(f"{name} must be a folder's path (a non-empty str or os.PathLike); got {folder!r}")
     folder = os.fspath(folder)
     os.makedirs(folder, exist_ok=True)
     key = os.path.realpath(folder)

@@ -100,8 +100,9 @@ class MCConfig:
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
-        for name in ("n_scenarios", "chunk", "n_modes", "capacity", "pade_order", "band_scenarios"):
+        for name in ("n_scenarios", "chunk", "capacity", "pade_order", "band_scenarios"):
             object.__setattr__(self, name, checks.integer(name, getattr(self, name)))
+        object.__setattr__(self, "n_modes", beam.check_n_modes(self.n_modes))
         object.__setattr__(self, "seed", checks.seed("seed", self.seed))
         if not isinstance(self.params, dict) or not all(isinstance(k, str) for k in self.params):
             raise ValueError(f"params must be a dict of parameter values by name; got {self.params!r}")
@@ -282,6 +283,7 @@ def run_montecarlo(
       ValueError: bad configuration, or a resume into a folder made by another configuration.
     """
     checks.instance("config", config, MCConfig, "build one with MCConfig(...)")
+    checks.callback("on_chunk", on_chunk, "the chunk's index")
     with fileio.run_lock(out_dir, "out_dir (--out)"):
         return _run_locked(config, os.fspath(out_dir), resume, progress, figures, on_chunk)
 

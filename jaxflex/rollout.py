@@ -132,6 +132,8 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
     if scenario.x0.ndim not in (1, 2) or scenario.x0.shape[-1] != n_x:
         raise ValueError(f"scenario.x0 must have shape ({n_x},) for this plant, or (B, {n_x}) for a batch of B scenarios; got {scenario.x0.shape}")
     batch = tuple(scenario.x0.shape[:-1])
+    if batch == (0,):
+        raise ValueError(f"scenario.x0 must hold at least one scenario (B >= 1); got shape {scenario.x0.shape}")
     shared = "shared by the batch" if batch else "one scenario"
     steps = scenario.force.shape[-2] if scenario.force.ndim >= 2 else -1
     if scenario.force.shape not in ((steps, 1), batch + (steps, 1)) or steps < 1:

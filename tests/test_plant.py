@@ -8,7 +8,7 @@ import pytest
 import scipy.linalg
 
 from jaxflex import plant as plant_mod
-from jaxflex.beam import BeamParams
+from jaxflex.beam import BeamParams, natural_frequencies_hz
 from jaxflex.plant import discretize, make_plant
 
 RTOL_EXPM = 1e-10  # two expm implementations of the same matrix, float64
@@ -308,12 +308,17 @@ def test_measurement_and_performance_maps_read_the_documented_states():
 )
 def test_arm_that_overflows_float32_is_refused_by_name(field, value, match):
     """A value finite in float64 (what configs are checked in) but not in the float32 of the
-    run, or one whose plant matrices overflow float32, was built into an inf/NaN plant."""
+    run, or one whose plant matrices overflow float32, was built into an inf/NaN plant; and
+    natural_frequencies_hz returned NaN frequencies for them."""
     arm = BeamParams(**{field: value})
+    frequencies = match.replace(r"the plant's A must be finite", r"the natural frequencies of the 2-mode model must be finite")
     with jax.enable_x64(False):
         with pytest.raises(ValueError, match=match):
             make_plant(arm)
+        with pytest.raises(ValueError, match=frequencies):
+            natural_frequencies_hz(arm)
     assert all(np.all(np.isfinite(m)) for m in make_plant(arm))  # float64 holds it
+    assert np.all(np.isfinite(natural_frequencies_hz(arm)))
 
 
 def test_sampled_plant_that_overflows_is_refused():

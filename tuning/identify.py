@@ -188,6 +188,8 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
     y = y[:, None] if y.ndim == 1 else y
     if t.ndim != 1 or y.ndim != 2 or y.shape[0] != t.shape[0]:
         raise ValueError(f"t must be [N] and y [N] or [N, channels] with the same N; got shapes {t.shape} and {y.shape}")
+    if t.size < 2 or y.shape[1] == 0:
+        raise ValueError(f"the record must hold at least 2 samples of at least 1 channel; got t of shape {t.shape} and y of shape {y.shape}")
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(y))):
         raise ValueError("the record must be finite: it holds NaN or infinite values")
     if np.any(np.diff(t) <= 0):

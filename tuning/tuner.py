@@ -97,8 +97,9 @@ class TuneConfig:
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
-        for name in ("n_scenarios", "n_heldout", "steps", "eval_every", "patience", "checkpoint_every", "n_modes", "capacity", "pade_order"):
+        for name in ("n_scenarios", "n_heldout", "steps", "eval_every", "patience", "checkpoint_every", "capacity", "pade_order"):
             object.__setattr__(self, name, checks.integer(name, getattr(self, name)))
+        object.__setattr__(self, "n_modes", beam.check_n_modes(self.n_modes))
         if self.capacity < 2:
             raise ValueError(f"capacity must be >= 2 samples; got {self.capacity}")
         for name in ("learning_rate", "clip_norm"):
@@ -151,6 +152,8 @@ class TuneConfig:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], **overrides: Any) -> "TuneConfig":
         """From a dict shaped like the TOML file: top-level keys, [scenarios], [objective], [initial], [beam]."""
+        if not isinstance(values, Mapping):
+            raise ValueError(f"values must be a mapping of the config's keys (a TOML file's tables); got {type(values).__name__} {values!r}")
         values = dict(values)
         fileio.check_keys(values, [f.name for f in dataclasses.fields(cls)], "config")
         if "scenarios" in values:
@@ -369,6 +372,8 @@ def tune(
         (nothing written).
     """
     checks.instance("config", config, TuneConfig, "build one with TuneConfig(...)")
+    checks.callback("on_step", on_step, "the step number")
+    checks.callback("on_start", on_start, "no arguments")
     if optimizer is not None:
         checks.instance("optimizer", optimizer, optax.GradientTransformation, "e.g. optax.adam(1e-2)")
     with fileio.run_lock(out_dir, "out_dir (--out)"):

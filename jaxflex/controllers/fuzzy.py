@@ -102,7 +102,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
 import jax
@@ -208,12 +208,14 @@ def _rule_indices(rules: Sequence[Sequence[str]], set_names: Sequence[str]) -> _
       ValueError: for bad set names, or naming the index of a rule that is not a triple of
         names from ``set_names``.
     """
+    if isinstance(set_names, str) or not isinstance(set_names, Iterable):
+        raise ValueError(f"set_names must be a sequence of at least 2 strings; got {set_names!r}")
     names = tuple(set_names)
     if len(names) < 2 or not all(isinstance(n, str) for n in names):
         raise ValueError(f"set_names must be at least 2 strings; got {set_names!r}")
     if len(set(names)) != len(names):
         raise ValueError(f"set_names must be distinct; got {names!r}")
-    if isinstance(rules, str):
+    if isinstance(rules, str) or not isinstance(rules, Sequence):
         raise ValueError(f"rules must be a sequence of (angle, velocity, torque) triples; got {rules!r}")
     if len(rules) == 0:
         raise ValueError("rules must hold at least one (angle, velocity, torque) triple (with none the torque is always 0: the open loop)")

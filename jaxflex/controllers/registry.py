@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxflex import checks
-from jaxflex.controllers.base import Controller, OpenLoopParams, combine, open_loop
+from jaxflex.controllers.base import Controller, OpenLoopParams, check_finite_scalar, combine, open_loop
 from jaxflex.controllers.dfs import DFSParams, dfs
 from jaxflex.controllers.fuzzy import fuzzy, fuzzy_params
 
@@ -96,6 +96,7 @@ def by_name(
     """
     if name not in NAMES:
         raise ValueError(f"name must be one of {NAMES}; got {name!r}")
+    check_finite_scalar("dt", dt, positive=True)  # DFS's own check: every name takes a sample time
     if delay not in DELAYS:
         raise ValueError(f"delay must be one of {DELAYS}; got {delay!r}")
     values = param_values(params)
