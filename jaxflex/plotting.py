@@ -238,7 +238,8 @@ def loss_curves(
         ax.yaxis.get_major_formatter().set_useOffset(False)
     ax.set_xlabel("Step")
     ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # steps are updates
-    ax.set_ylabel("Objective" if paper is None else f"Objective (paper gains, training: {paper:.4g})")
+    ax.margins(x=0)  # the axis ran a step or more past the last one
+    ax.set_ylabel("Objective" if paper is None else f"Objective (the paper gains score {paper:.4g} on training)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(title)

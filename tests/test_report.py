@@ -218,9 +218,10 @@ def test_loss_curves_name_the_paper_gains_objective_and_whole_steps():
 
     fig = plotting.loss_curves(np.arange(3), np.array([3.69, 3.68, 3.68]), np.array([0, 2]), np.array([4.9, 5.2]), "t", best_step=0, paper=3.69)
     ax = fig.axes[0]
-    assert ax.get_ylabel() == "Objective (paper gains, training: 3.69)"
+    assert ax.get_ylabel() == "Objective (the paper gains score 3.69 on training)"
     fig.canvas.draw()
     assert all(float(tick) == int(tick) for tick in ax.get_xticks())  # no step 0.25 over 2 updates
+    assert ax.get_xlim() == (0.0, 2.0)  # it ran to 2.1: past the last update
     plotting.plt.close(fig)
     assert plotting.loss_curves(np.arange(3), np.ones(3), np.array([]), np.array([]), "t").axes[0].get_ylabel() == "Objective"
     # the legend names the stability penalty only where the loss holds it (DFS alone): a fuzzy run's named one
