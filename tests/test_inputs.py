@@ -5,6 +5,7 @@ named a narrower range than the one checked. Each is now a ValueError naming the
 import numpy as np
 import pytest
 
+from jaxflex.analysis import vibration_reduction_db
 from jaxflex.controllers import DFSParams, by_name, dfs, fuzzy
 from jaxflex.montecarlo import MCConfig, run_montecarlo
 from jaxflex.plant import discretize, make_plant
@@ -36,6 +37,9 @@ from tuning.tuner import TuneConfig, tune
         # said 'integer >= 1' while 101 was refused later
         (lambda: TuneConfig(n_modes=0), r"n_modes must be an integer in \[1, 100\]; got 0"),
         (lambda: MCConfig(n_modes=101), r"n_modes must be an integer in \[1, 100\]; got 101"),
+        # a negative PSD gave NaN dB; a string leaked JAX's own type error
+        (lambda: vibration_reduction_db(np.arange(10.0), -np.ones(10), np.ones(10), [4.0]), r"psd_open must be a power spectral density, >= 0 \(units\^2/Hz\); got a minimum of -1"),
+        (lambda: vibration_reduction_db(np.arange(10.0), np.ones(10), "abc", [4.0]), r"psd_closed must be a real number or an array of real numbers; got 'abc'"),
     ],
 )
 def test_bad_input_is_refused_by_name(call, match, tmp_path, monkeypatch):
@@ -43,6 +47,12 @@ def test_bad_input_is_refused_by_name(call, match, tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=match):
         call()
     assert not (tmp_path / "unused").exists()  # refused before any folder is made
+
+
+def test_a_diverged_runs_nan_psd_still_gives_nan_decibels():
+    """The PSD check refuses negative values only: a diverged run's NaN PSD passes, as NaN dB."""
+    reduction = vibration_reduction_db(np.arange(10.0), np.full(10, np.nan), np.ones(10), [4.0])
+    assert np.isnan(np.asarray(reduction)).all()
 
 
 def test_an_empty_batch_of_scenarios_is_refused():

@@ -341,6 +341,11 @@ def vibration_reduction_db(
     Returns:
       ``[n_modes]`` reduction (dB).
     """
+    for name, value in (("freqs", freqs), ("psd_open", psd_open), ("psd_closed", psd_closed)):
+        if is_concrete(value):
+            checks.real_array(name, value)
+            if name != "freqs" and np.any(np.asarray(value) < 0):  # NaN (a diverged run) passes, and gives NaN
+                raise ValueError(f"{name} must be a power spectral density, >= 0 (units^2/Hz); got a minimum of {np.nanmin(np.asarray(value)):g}")
     freqs = jnp.asarray(freqs)
     psd_open = jnp.asarray(psd_open)
     psd_closed = jnp.asarray(psd_closed)
