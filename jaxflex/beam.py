@@ -103,13 +103,13 @@ _POSITIVE_FIELDS = (
 _NONNEGATIVE_FIELDS = ("payload_mass_kg", "payload_inertia_kg_m2", "damping_ratio")
 
 
-def check_beam_params(params: BeamParams, dtype: jax.typing.DTypeLike | None = None) -> None:
+def check_beam_params(params: BeamParams, *, representable: bool = False) -> None:
     """Value checks on concrete parameters (skipped for traced leaves).
 
     Args:
       params: the parameters.
-      dtype: the dtype they will be simulated in (``structural_dtype``), or None. When given,
-        each field must also be representable in it: finite (1e39 N/m^2 is finite in float64
+      representable: also require each field to be representable in the dtype the arm's
+        matrices are built in (``structural_dtype``): finite (1e39 N/m^2 is finite in float64
         but inf in float32), and a positive field at least its smallest normal number (else 0).
 
     Raises:
@@ -118,7 +118,8 @@ def check_beam_params(params: BeamParams, dtype: jax.typing.DTypeLike | None = N
     """
     if not isinstance(params, BeamParams):
         raise ValueError(f"params must be a BeamParams (jaxflex.beam.BeamParams(length_m=..., ...)); got {type(params).__name__} {params!r}")
-    for name in _POSITIVE_FIELDS + _NONNEGATIVE_FIELDS + ("rayleigh_alpha", "rayleigh_beta"):
+    fields = _POSITIVE_FIELDS + _NONNEGATIVE_FIELDS + ("rayleigh_alpha", "rayleigh_beta")
+    for name in fields:
         value = getattr(params, name)
         if (value is None and name.startswith("rayleigh")) or isinstance(value, jax.core.Tracer):
             continue
@@ -131,16 +132,22 @@ def check_beam_params(params: BeamParams, dtype: jax.typing.DTypeLike | None = N
             raise ValueError(f"BeamParams.{name} must be > 0; got {value}")
         if name not in _POSITIVE_FIELDS and not np.all(arr >= 0):
             raise ValueError(f"BeamParams.{name} must be >= 0; got {value}")
-        if dtype is not None:
-            info = jnp.finfo(dtype)
-            low = info.tiny if name in _POSITIVE_FIELDS else 0.0
-            if not np.all((arr >= low) & (arr <= info.max)):
-                raise ValueError(
-                    f"BeamParams.{name} must be in [{low:.4g}, {info.max:.4g}] to be simulated in {jnp.dtype(dtype).name} "
-                    f"(float64 with jax_enable_x64, --x64 on the command line); got {value}"
-                )
     if (params.rayleigh_alpha is None) != (params.rayleigh_beta is None):
         raise ValueError("BeamParams.rayleigh_alpha and rayleigh_beta must be given together (or both None)")
+    if not representable:
+        return
+    dtype = structural_dtype(params)  # read once the fields are known to be real scalars
+    info = jnp.finfo(dtype)
+    for name in fields:
+        value = getattr(params, name)
+        if value is None or isinstance(value, jax.core.Tracer):
+            continue
+        low = float(info.tiny) if name in _POSITIVE_FIELDS else 0.0
+        if not low <= float(np.asarray(value)) <= float(info.max):  # as Python floats: 1e39 is no float32
+            raise ValueError(
+                f"BeamParams.{name} must be in [{low:.4g}, {info.max:.4g}] to be simulated in {jnp.dtype(dtype).name} "
+                f"(float64 with jax_enable_x64, --x64 on the command line); got {value}"
+            )
 
 
 def params_from_mapping(values: Mapping[str, Any]) -> BeamParams:
@@ -373,8 +380,7 @@ def natural_frequencies_hz(params: BeamParams, n_modes: int = 2, hub: str = "fre
     """
     n_modes = check_n_modes(n_modes)
     check_hub(hub)
-    check_beam_params(params)
-    check_beam_params(params, structural_dtype(params))  # 1e39 N/m^2 is inf in float32: NaN frequencies
+    check_beam_params(params, representable=True)  # 1e39 N/m^2 is inf in float32: NaN frequencies
     M, K, *_ = _structural(params, n_modes)
     omegas = jnp.sqrt(_natural_omegas_sq(M[1:, 1:], K[1:, 1:])) if hub == "clamped" else _flexible_omegas(M, K)
     if not isinstance(omegas, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(omegas))):

@@ -112,8 +112,7 @@ def make_plant(params: beam.BeamParams | None = None, n_modes: int = 2) -> Linea
       n_modes: number of assumed modes (static int >= 1).
     """
     params = beam.BeamParams() if params is None else params
-    beam.check_beam_params(params)  # its type and fields first: structural_dtype reads them
-    beam.check_beam_params(params, beam.structural_dtype(params))
+    beam.check_beam_params(params, representable=True)
     plant = _make_plant(params, beam.check_n_modes(n_modes))
     _check_finite_maps(plant, ("A", "B", "E"), f"for {params} (check the units, or simulate in float64 with jax_enable_x64, --x64)")
     return plant
