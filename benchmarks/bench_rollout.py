@@ -28,6 +28,11 @@ Sections (``--section``, default all):
   timed in interleaved rounds, and a straight line through each one's time per step against
   the scenarios per device: a fixed cost per step and a cost per scenario-step, whose
   inverse bounds the rate at any batch.
+* ``unroll``: ``lax.scan``'s ``unroll`` (``--unrolls``) for three programs: the DFS+fuzzy
+  rollout forward (``--unroll-batches``) and value_and_grad (``--grad-batch``), and a Monte
+  Carlo chunk (``--unroll-batches`` scenarios of the default ``MCConfig``: a batch of
+  plants, the closed and the open loop over 3 s). Each program's unrolls are timed in
+  interleaved rounds, and their outputs compared with the first unroll's.
 
 Examples::
 
@@ -46,13 +51,14 @@ import sys
 import time
 from typing import Any, Callable
 
-SECTIONS = ("matmul", "flops", "memory", "baselines", "sweep", "matrix", "capacity", "ab", "cost")
+SECTIONS = ("matmul", "flops", "memory", "baselines", "sweep", "matrix", "capacity", "ab", "cost", "unroll")
 CAPACITIES = (64, 16, 8)  # DFS buffer sizes of the capacity section (the delay is 5 samples)
 AB_REV = "620479b"  # the last commit before the layout changes of rollout.py and fuzzy.py
 SWEEP_BATCHES = (1, 16, 256, 1024, 4096, 16384, 65536, 131072)
 MAX_SWEEP_STEPS = 1.4e8  # default cap on batch * horizon of one call in the sweep (CPU time)
 VARIANT_BATCHES = (1024, 4096, 16384)  # sweep batches of the singleton, smooth and RK4 rows
 COST_BATCHES = (2048, 4096, 8192, 16384, 32768)  # batches of the cost section
+UNROLLS = (1, 2, 8)  # scan unrolls of the unroll section
 RTOL_NUMPY = 1e-10  # float64, same arithmetic in another order (observed ~3e-15)
 RTOL_CONTROL = 1e-10  # python-control: float64, the same maps (observed ~1e-14)
 # scikit-fuzzy integrates the centroid on a sampled universe (2001 points, step 1e-3): each
@@ -554,6 +560,61 @@ def section_cost(emit: Callable, runs: int, min_time: float, horizon: int, batch
         emit({"kind": "cost_fit", "controller": controller, "defuzz": label, "n_devices": n_dev, "batches": list(batches), "fixed_us_per_step": fixed * 1e6, "ns_per_scenario_step": per_scenario * 1e9, "limit_steps_per_second": n_dev / per_scenario})
 
 
+def _unroll_program(program: str, batch: int, unroll: int, horizon: int) -> tuple[Callable, tuple, int]:
+    """The jitted ``fn``, its ``args`` and the samples per scenario of one unroll-section program."""
+    import jax
+
+    from jaxflex.bench import BenchConfig, make_benchmark
+    from jaxflex.montecarlo import MCConfig, _Runner
+
+    if program == "montecarlo chunk":
+        runner = _Runner(MCConfig(n_scenarios=batch, chunk=batch), unroll=unroll)
+        scenarios = jax.device_put(runner.sample(1), runner.sharding)
+        return runner.evaluate, (scenarios,), scenarios.force.shape[-2]
+    fn, args = make_benchmark(BenchConfig(batch=batch, horizon=horizon, mode=program.split()[-1], unroll=unroll))
+    return fn, args, horizon
+
+
+def _scaled_difference(a: Any, b: Any) -> float:
+    """The largest ``|a - b|`` of any leaf, over that leaf's largest finite ``|a|``."""
+    import jax
+    import numpy as np
+
+    worst = 0.0
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        finite = np.isfinite(x) & np.isfinite(y)
+        scale = np.max(np.abs(x[finite]), initial=0.0)
+        if scale > 0:
+            worst = max(worst, float(np.max(np.abs(x[finite] - y[finite])) / scale))
+    return worst
+
+
+def section_unroll(emit: Callable, runs: int, min_time: float, horizon: int, batches: tuple[int, ...], grad_batch: int, unrolls: tuple[int, ...]) -> None:
+    import jax
+    import numpy as np
+
+    for program, program_batches in (("rollout forward", batches), ("rollout grad", (grad_batch,)), ("montecarlo chunk", batches)):
+        for batch in program_batches:
+            calls, outputs, first, steps = {}, {}, {}, horizon
+            for unroll in unrolls:
+                fn, args, steps = _unroll_program(program, batch, unroll, horizon)
+                start = time.perf_counter()
+                outputs[unroll] = jax.device_get(jax.block_until_ready(fn(*args)))
+                first[unroll] = time.perf_counter() - start
+                calls[unroll] = (fn, args)
+            walls = interleaved_walls(calls, runs, min_time)
+            base = float(np.median(walls[unrolls[0]]))
+            for unroll in unrolls:
+                median = float(np.median(walls[unroll]))
+                emit({
+                    "kind": "unroll", "program": program, "batch": batch, "horizon": steps, "unroll": unroll,
+                    "steps_per_second": batch * steps / median, "speedup": base / median, "first_call_s": first[unroll],
+                    "max_scaled_difference": _scaled_difference(outputs[unrolls[0]], outputs[unroll]),
+                })
+            del calls, outputs  # the next program's buffers: one program's unrolls in memory at a time
+
+
 # -- ab: before / after the layout changes ---------------------------------------------------
 
 
@@ -701,6 +762,12 @@ def render_tables(paths: list[str]) -> str:
                     label = lambda v: f"{r['rev']}" if v == "old" else "new"  # noqa: E731
                     out.append(f"| {label(r['rollout'])} | {label(r['fuzzy'])} | {r['mode']} | {r['batch']} | {_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {r['compile_s']:.2f} |")
             out.append("")
+        if "unroll" in kinds:
+            out.append("| program | batch | horizon | unroll | steps/s (median) | speedup | first call s | max difference / leaf scale |\n|---|---:|---:|---:|---:|---:|---:|---:|")
+            for r in rows:
+                if r["kind"] == "unroll":
+                    out.append(f"| {r['program']} | {r['batch']} | {r['horizon']} | {r['unroll']} | {_fmt(r['steps_per_second'])} | {r['speedup']:.2f}x | {r['first_call_s']:.1f} | {r['max_scaled_difference']:.1e} |")
+            out.append("")
         if "cost_fit" in kinds:
             out.append("| controller | defuzz | steps/s at each batch (median) | fixed cost per step, per device | per scenario-step, per device | rate at any batch at most |\n|---|---|---|---:|---:|---:|")
             for r in rows:
@@ -765,6 +832,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-intra-op-threads", action="store_true", help="XLA_FLAGS=--xla_cpu_multi_thread_eigen=false")
     p.add_argument("--cost-batches", type=int, nargs="+", default=list(COST_BATCHES), help="batch sizes of the cost section (two or more)")
     p.add_argument("--ab-rev", default=AB_REV, help=f"git revision of the 'before' modules of the ab section (default {AB_REV})")
+    p.add_argument("--unrolls", type=_count, nargs="+", default=list(UNROLLS), help="scan unrolls of the unroll section, the first the reference (default 1 2 8)")
+    p.add_argument("--unroll-batches", type=_count, nargs="+", default=[4096], help="batches of the unroll section's forward rollout and Monte Carlo chunk (default 4096)")
     p.add_argument("--quick", action="store_true", help="small sizes: horizon 200, runs 3, sweep to 16384")
     return p
 
@@ -808,6 +877,8 @@ def main(argv: list[str] | None = None) -> int:
             section_ab(emit, args.runs, args.horizon, args.batch, 1024, args.ab_rev)
         elif section == "cost":
             section_cost(emit, args.runs, args.min_time, args.horizon, tuple(args.cost_batches))
+        elif section == "unroll":
+            section_unroll(emit, args.runs, args.min_time, args.horizon, tuple(args.unroll_batches), args.grad_batch, tuple(args.unrolls))
     meta["loadavg_1min_end"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     meta["peak_device_bytes"] = _peak_device_bytes()
     if args.out:

@@ -80,6 +80,7 @@ class BenchConfig:
         typical rate on a host whose speed drifts.
       capacity: DFS delay-buffer capacity in samples, >= 5 (the benchmarked delay is 5
         samples); 64 is ``dfs()``'s default.
+      unroll: ``rollout``'s ``unroll`` (samples per compiled loop iteration), >= 1.
     """
 
     controller: str = "dfs+fuzzy"
@@ -92,12 +93,13 @@ class BenchConfig:
     runs: int = 5
     capacity: int = 64
     min_time_s: float = 0.0
+    unroll: int = 1
 
     def __post_init__(self) -> None:
         for name, allowed in (("controller", CONTROLLERS), ("defuzz", DEFUZZ), ("integrator", METHODS), ("dtype", DTYPES), ("mode", MODES)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}; got {getattr(self, name)!r}")
-        for name, low in (("batch", 1), ("horizon", 2), ("runs", 1), ("capacity", DELAY_SAMPLES)):
+        for name, low in (("batch", 1), ("horizon", 2), ("runs", 1), ("capacity", DELAY_SAMPLES), ("unroll", 1)):
             object.__setattr__(self, name, checks.integer(name, getattr(self, name), low))
         object.__setattr__(self, "min_time_s", checks.number("min_time_s", self.min_time_s, unit="seconds"))
         if self.mode == "grad" and self.controller == "open_loop":
@@ -167,7 +169,7 @@ def make_benchmark(cfg: BenchConfig) -> tuple[Callable, tuple]:
         x0 = jax.device_put(x0, NamedSharding(mesh, PartitionSpec("batch")))
 
     def metrics(params, x0):
-        return rollout(plant, controller, params, Scenario(x0, force, noise), output="metrics")
+        return rollout(plant, controller, params, Scenario(x0, force, noise), output="metrics", unroll=cfg.unroll)
 
     if cfg.mode == "forward":
         return jax.jit(metrics), (params, x0)

@@ -93,6 +93,8 @@ def test_bench_config_validation():
         BenchConfig(controller="open_loop", mode="grad")
     with pytest.raises(ValueError, match="capacity must be an integer >= 5"):
         BenchConfig(capacity=4)  # shorter than the benchmarked 5-sample delay
+    with pytest.raises(ValueError, match="unroll must be an integer >= 1; got 0"):
+        BenchConfig(unroll=0)
     for bad in (-0.1, float("inf"), float("nan"), True):
         with pytest.raises(ValueError, match="min_time_s must be a finite number of seconds >= 0"):
             BenchConfig(min_time_s=bad)
@@ -326,3 +328,23 @@ def test_cost_section_fits_its_own_rows_and_tabulates_them(tmp_path):
     (tmp_path / "cost.json").write_text(json.dumps({"meta": meta, "rows": emit.rows}))
     table = render_tables([str(tmp_path / "cost.json")])
     assert table.count("| dfs+fuzzy | singleton | 8: ") == 1 and "| open_loop | - | 8: " in table
+
+
+def test_unroll_section_compares_each_program_with_the_plain_loop_and_tabulates_it(tmp_path):
+    from benchmarks.bench_rollout import Emitter, _scaled_difference, render_tables, section_unroll
+
+    assert _scaled_difference({"a": np.array([2.0, np.inf]), "b": 1.0}, {"a": np.array([1.5, 7.0]), "b": 1.0}) == 0.25  # finite entries, over the leaf's scale
+    emit = Emitter({"affinity_cores": 2})
+    section_unroll(emit, runs=2, min_time=0.0, horizon=20, batches=(4,), grad_batch=4, unrolls=(1, 2))
+    rows = emit.rows
+    assert [(r["program"], r["unroll"]) for r in rows] == [(p, u) for p in ("rollout forward", "rollout grad", "montecarlo chunk") for u in (1, 2)]
+    assert [r["horizon"] for r in rows] == [20] * 4 + [3000] * 2  # the Monte Carlo's own 3 s at 1 ms
+    for r in rows:
+        assert r["speedup"] > 0 and r["steps_per_second"] > 0
+        assert r["max_scaled_difference"] < (1e-5 if r["program"] != "montecarlo chunk" else 0.05)
+    assert rows[0]["speedup"] == 1.0 and rows[0]["max_scaled_difference"] == 0.0
+    meta = dict.fromkeys(("cpu_model", "cpu_count", "affinity_cores", "n_devices", "device_kind", "xla_flags", "jax_version", "numpy_version", "time_utc", "command"), "-")
+    meta["loadavg_1min"] = 0.5
+    (tmp_path / "unroll.json").write_text(json.dumps({"meta": meta, "rows": rows}))
+    table = render_tables([str(tmp_path / "unroll.json")])
+    assert "| montecarlo chunk | 4 | 3000 | 2 | " in table and table.count("| rollout grad | 4 | 20 |") == 2

@@ -727,3 +727,26 @@ def test_parameters_narrower_than_the_plant_run_as_their_float64_values(plant2):
     run = lambda p: jf.rollout(plant2, fuzzy(), p, sc, output="metrics")  # noqa: E731
     tree_allclose(run(params32), run(jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), params32)), rtol=1e-12, atol=0)
     assert run(params32).tip_ise.dtype == jnp.float64
+
+
+def test_an_unrolled_loop_computes_the_same_run(plant2):
+    """``unroll`` changes how many samples one compiled loop iteration takes, not the run:
+    trajectories and metrics agree with the plain loop (float64), also when the horizon is
+    no multiple of it (lax.scan runs the remainder)."""
+    controller, params = by_name("dfs", dt=1e-3)  # a carried ring buffer (the fuzzy surface unrolled is slow to compile)
+    base = paper_scenario(plant2, horizon_s=0.05)  # 50 samples
+    x0 = base.x0[None] + jnp.outer(jnp.arange(4.0), jnp.full(base.x0.shape, 1e-4))
+    batch = Scenario(x0, base.force, base.noise)
+    freqs = jnp.array([3.0, 20.0])
+    for output in ("trajectory", "metrics"):
+        plain = jf.rollout(plant2, controller, params, batch, output=output, **({"mode_freqs_hz": freqs} if output == "metrics" else {}))
+        unrolled = jf.rollout(plant2, controller, params, batch, output=output, unroll=3, **({"mode_freqs_hz": freqs} if output == "metrics" else {}))
+        tree_allclose(unrolled, plain, rtol=1e-12, atol=1e-18)
+    jaxpr = jax.make_jaxpr(lambda p: jf.rollout(plant2, controller, p, batch, output="metrics", unroll=3))(params)
+    assert [e.params["unroll"] for e in jaxpr.eqns if e.primitive.name == "scan"] == [3]  # reaches the loop
+
+
+@pytest.mark.parametrize("unroll", [0, -2, 1.5, True, "8", None])
+def test_a_bad_unroll_is_refused_by_name(plant2, unroll):
+    with pytest.raises(ValueError, match=rf"unroll must be an integer >= 1; got {re.escape(repr(unroll))}"):
+        jf.rollout(plant2, open_loop(), OpenLoopParams(), paper_scenario(plant2, horizon_s=0.01), unroll=unroll)
