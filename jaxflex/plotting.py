@@ -65,6 +65,13 @@ def _finite_prefix(values: np.ndarray) -> int:
 def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signals: Sequence[tuple[str, str]], diverged: Mapping[str, bool], title: str, style_of: Mapping[str, str] | None = None) -> plt.Figure:
     """Time responses, one subplot per signal.
 
+    A run that settles early would fill a sliver of the horizon (the paper's DFS settles in
+    0.25 s of 3 s). A run has settled from the first sample after which each of its signals
+    stays within ``SETTLED_FRACTION`` of its own largest magnitude. When every run drawn
+    settles within ``ZOOM_FRACTION`` of the horizon, the time axis ends a quarter past the
+    last of them (as :func:`percentile_bands` does) and a note gives the moment; when only
+    some do (an open loop rings on), a second column shows that stretch.
+
     Args:
       t: [T] time (s).
       runs: run name -> signal name -> [T] values.
@@ -82,35 +89,77 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
         missing = [name for name, _ in signals if name not in sig]
         if missing:
             raise ValueError(f"runs[{run!r}] lacks signal(s) {missing}; it has {sorted(sig)}")
-    fig, axes = plt.subplots(len(signals), 1, figsize=(7.5, 2.6 * len(signals)), sharex=True, squeeze=False)
+    t = np.asarray(t, dtype=float)
+    values = {run: {name: np.asarray(sig[name]) for name, _ in signals} for run, sig in runs.items()}
+    settled = {run: _run_settled(t, list(sig.values())) for run, sig in values.items() if not diverged.get(run, False)}
+    span = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    quick = [s for s in settled.values() if s is not None and s - t[0] < ZOOM_FRACTION * span]
+    end = float(t[0]) + max(1.25 * (max(quick) - t[0]), 0.05 * span) if quick and max(quick) > t[0] else None
+    whole = end is not None and len(quick) == len(runs)  # every run settles early: no column to compare
+    zoom = end is not None and not whole
+    fig, axes = plt.subplots(len(signals), 2 if zoom else 1, figsize=(11.0 if zoom else 7.5, 2.6 * len(signals)), sharex="col", squeeze=False, gridspec_kw={"width_ratios": [2, 1]} if zoom else None)
     styles = _styles(list(runs), style_of)
-    for ax, (name, ylabel) in zip(axes[:, 0], signals):
-        values = {run: np.asarray(sig[name]) for run, sig in runs.items()}
-        ends = {run: _finite_prefix(v) for run, v in values.items()}
-        # the axes hold the runs that did not diverge; a diverged one is drawn until it leaves
-        # them (its growing swings would cross them at every sample and fill them)
-        settled = [v[: ends[run]] for run, v in values.items() if not diverged.get(run, False) and ends[run]]
-        limits = None
-        if settled and len(settled) < len(runs):
-            lo, hi = min(np.min(v) for v in settled), max(np.max(v) for v in settled)
-            pad = 0.1 * (hi - lo) or 1e-12
-            limits = (lo - pad, hi + pad)
-        for run, v in values.items():
-            n = ends[run]
-            if limits is not None and diverged.get(run, False):
-                outside = np.flatnonzero((v[:n] < limits[0]) | (v[:n] > limits[1]))
-                n = int(outside[0]) + 1 if outside.size else n
-            label = LABELS.get(run, run) + (" (diverged)" if diverged.get(run, False) else "")
-            ax.plot(t[:n], v[:n], label=label, **styles[run])
-        if limits is not None:
-            ax.set_ylim(*limits)
-        ax.set_ylabel(ylabel)
-        ax.grid(alpha=0.3)
+    for row, (name, ylabel) in enumerate(signals):
+        _response_panel(axes[row, 0], t, {run: sig[name] for run, sig in values.items()}, diverged, styles)
+        axes[row, 0].set_ylabel(ylabel)
+        if zoom:
+            n = int(np.searchsorted(t, end, side="right"))
+            _response_panel(axes[row, 1], t[:n], {run: sig[name][:n] for run, sig in values.items()}, diverged, styles)
+            axes[row, 1].set_xlim(float(t[0]), end)
+    if whole:
+        axes[0, 0].set_xlim(float(t[0]), end)
+        axes[-1, 0].text(0.99, 0.03, f"from {max(quick):.3g} s to the horizon ({t[-1]:.3g} s) every run stays within {SETTLED_FRACTION:.0%} of its peak", transform=axes[-1, 0].transAxes, ha="right", va="bottom", fontsize=8, color="0.3")
+    if zoom:
+        axes[0, 1].set_title(f"The first {end - t[0]:.2g} s", fontsize=9)
+        axes[-1, 1].set_xlabel("Time (s)")
     axes[0, 0].legend(loc="upper right", fontsize=8)
     axes[-1, 0].set_xlabel("Time (s)")
     fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+ZOOM_FRACTION = 1 / 3
+"""responses: runs settled within this fraction of the horizon get a zoomed column."""
+
+
+def _run_settled(t: np.ndarray, signals: Sequence[np.ndarray]) -> float | None:
+    """The time from which every signal stays within SETTLED_FRACTION of its own largest
+    finite magnitude; None when one has no finite value or does not settle before the
+    last sample."""
+    latest = float(t[0])
+    for v in signals:
+        magnitude = np.abs(np.asarray(v, dtype=float))
+        if not np.all(np.isfinite(magnitude)):
+            return None
+        active = np.flatnonzero(magnitude > SETTLED_FRACTION * magnitude.max())
+        if active.size and active[-1] + 1 >= len(t):
+            return None
+        latest = max(latest, float(t[active[-1] + 1]) if active.size else latest)
+    return latest
+
+
+def _response_panel(ax: plt.Axes, t: np.ndarray, values: Mapping[str, np.ndarray], diverged: Mapping[str, bool], styles: Mapping[str, dict]) -> None:
+    """One signal of every run against time, on axes scaled to the runs that did not diverge."""
+    ends = {run: _finite_prefix(v) for run, v in values.items()}
+    # the axes hold the runs that did not diverge; a diverged one is drawn until it leaves
+    # them (its growing swings would cross them at every sample and fill them)
+    settled = [v[: ends[run]] for run, v in values.items() if not diverged.get(run, False) and ends[run]]
+    limits = None
+    if settled and len(settled) < len(values):
+        lo, hi = min(np.min(v) for v in settled), max(np.max(v) for v in settled)
+        pad = 0.1 * (hi - lo) or 1e-12
+        limits = (lo - pad, hi + pad)
+    for run, v in values.items():
+        n = ends[run]
+        if limits is not None and diverged.get(run, False):
+            outside = np.flatnonzero((v[:n] < limits[0]) | (v[:n] > limits[1]))
+            n = int(outside[0]) + 1 if outside.size else n
+        label = LABELS.get(run, run) + (" (diverged)" if diverged.get(run, False) else "")
+        ax.plot(t[:n], v[:n], label=label, **styles[run])
+    if limits is not None:
+        ax.set_ylim(*limits)
+    ax.grid(alpha=0.3)
 
 
 def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Sequence[float], ylabel: str, title: str, fmax: float | None = None, style_of: Mapping[str, str] | None = None) -> plt.Figure:

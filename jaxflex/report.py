@@ -241,9 +241,9 @@ def tuned_comparison(tuned: dict[str, Any]) -> list[TunedRow]:
 TUNED_FIGURE = "fig_tuned_response.png"  # with --params only
 FIGURES = {
     "fig4_fuzzy_surface.png": "control surface of the fuzzy controller over the normalised (angle, velocity) square (paper Fig. 4)",
-    "fig5_dfs_response.png": "q1 and tip deflection, DFS against open loop (paper Fig. 5)",
+    "fig5_dfs_response.png": "q1 and tip deflection, DFS against open loop, and beside them the stretch in which DFS settles (paper Fig. 5)",
     "fig6_dfs_psd.png": "PSD of the tip deflection, DFS against open loop (paper Fig. 6)",
-    "fig7_fuzzy_response.png": "q1 and tip deflection, PD-fuzzy against open loop (paper Fig. 7)",
+    "fig7_fuzzy_response.png": "q1 and tip deflection, PD-fuzzy against open loop, and beside them the stretch in which PD-fuzzy settles (paper Fig. 7)",
     "fig8_fuzzy_psd.png": "PSD of the tip deflection, PD-fuzzy against open loop (paper Fig. 8)",
     "fig9_reduction.png": "vibration reduction in dB at each mode, per PSD estimator, beside the paper's (paper Fig. 9)",
 }

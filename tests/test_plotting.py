@@ -238,3 +238,42 @@ def test_surface_writes_its_note_and_histograms_name_their_counts():
     assert not plotting.surface(grid, grid, np.zeros((5, 5))).texts
     fig = plotting.histograms({"a": np.arange(10.0), "b": np.arange(5.0)}, {}, "t")
     assert [ax.get_ylabel() for ax in fig.axes[:2]] == ["runs", "runs"]
+
+
+def _ringing(t, decay_per_s, amplitude=1e-3):
+    return amplitude * np.exp(-decay_per_s * t) * np.cos(2 * np.pi * 13.3 * t)
+
+
+def test_a_run_that_settles_early_gets_a_zoomed_column_beside_the_whole_horizon():
+    """The paper's DFS settles in about 0.25 s of 3 s and filled a twelfth of the figure's
+    width beside the ringing open loop: a second column shows the first stretch."""
+    t = np.arange(3000) * 1e-3
+    closed = _ringing(t, 25.0)
+    settle = t[np.flatnonzero(np.abs(closed) > 0.01 * np.abs(closed).max())[-1] + 1]  # 1 % of its peak from here on
+    runs = {"open_loop": {"q1": _ringing(t, 0.8), "tip": 2 * _ringing(t, 0.8)}, "dfs": {"q1": closed, "tip": 2 * closed}}
+    fig = plotting.responses(t, runs, [("q1", "q1 (m)"), ("tip", "Tip (m)")], {}, "DFS")
+    (whole_q, zoom_q), (whole_tip, zoom_tip) = np.array(fig.axes).reshape(2, 2)
+    assert whole_q.get_xlim()[1] >= 3.0 and [line.get_xdata()[-1] for line in whole_q.get_lines()] == [t[-1], t[-1]]
+    for ax in (zoom_q, zoom_tip):
+        assert ax.get_xlim() == pytest.approx((0.0, 1.25 * settle))
+        assert all(line.get_xdata()[-1] <= 1.25 * settle for line in ax.get_lines()) and len(ax.get_lines()) == 2
+    assert zoom_q.get_title() == f"The first {1.25 * settle:.2g} s" and 0.1 < settle < 0.3
+    assert zoom_tip.get_ylim()[1] == pytest.approx(whole_tip.get_ylim()[1], rel=0.1)  # the open loop's first swings set both
+    # a diverged run is no settled run: the zoom stays, drawn on the settled runs' scale
+    grown = {"q1": closed * np.exp(40 * t), "tip": 2 * closed * np.exp(40 * t)}
+    fig = plotting.responses(t, {**runs, "fuzzy": grown}, [("q1", "q1 (m)"), ("tip", "Tip (m)")], {"fuzzy": True}, "x")
+    assert len(fig.axes) == 4 and fig.axes[1].get_xlim() == pytest.approx((0.0, 1.25 * settle))
+
+
+def test_runs_that_all_settle_early_end_the_time_axis_and_runs_that_ring_keep_the_horizon():
+    t = np.arange(3000) * 1e-3
+    quick, slower = _ringing(t, 25.0), _ringing(t, 12.0)
+    settle = t[np.flatnonzero(np.abs(slower) > 0.01 * np.abs(slower).max())[-1] + 1]
+    fig = plotting.responses(t, {"paper gains": {"tip": slower}, "tuned": {"tip": quick}}, [("tip", "Tip (m)")], {}, "tuned")
+    (ax,) = fig.axes
+    assert ax.get_xlim() == pytest.approx((0.0, 1.25 * settle)) and settle < 1.0
+    assert [text.get_text() for text in ax.texts] == [f"from {settle:.3g} s to the horizon (3 s) every run stays within 1% of its peak"]
+    # a run that rings to the end (or past a third of the horizon) keeps the whole horizon, alone
+    for decay in (0.8, 2.0):  # 1 % of the peak never, and at 2.3 s
+        fig = plotting.responses(t, {"open_loop": {"tip": _ringing(t, decay)}}, [("tip", "Tip (m)")], {}, "open loop")
+        assert len(fig.axes) == 1 and fig.axes[0].get_xlim()[1] >= 3.0 and not fig.axes[0].texts
