@@ -209,10 +209,13 @@ def reduction_bars(reductions: Mapping[str, Mapping[str, Sequence[float]]], pape
     # tick labels keep apart
     fig, ax = plt.subplots(figsize=(max(9.0, 3.0 + 1.3 * len(groups)), 3.8))
     x = np.arange(len(groups))
+    # the estimators in shades of one colour map: the controllers' colours (DFS blue, fuzzy
+    # red, tuned green) would say a bar belongs to a controller
+    shades = plt.get_cmap("viridis")(np.linspace(0.15, 0.85, len(estimators)))
     for i, est in enumerate(estimators):
         vals = np.array([np.nan if reductions[est][c][m] is None else reductions[est][c][m] for c, m in groups], float)
         pos = x + (i - (n_bars - 1) / 2) * width
-        ax.bar(pos, np.nan_to_num(vals, nan=0.0), width, label=f"jaxflex, {est}")
+        ax.bar(pos, np.nan_to_num(vals, nan=0.0), width, label=f"jaxflex, {est}", color=shades[i])
         for xi in pos[np.isnan(vals)]:
             ax.text(xi, 0.0, "diverged", rotation=90, ha="center", va="bottom", fontsize=7, color="0.3")
     if paper:

@@ -85,6 +85,15 @@ def test_reduction_bars_with_more_modes_than_the_paper():
     paper = [p.get_height() for p in ax.patches if p.get_hatch()]
     assert paper == [123.4, 66.9, 102.2, 23.2]
     assert [text.get_text() for text in ax.texts].count("diverged") == 1
+    # an estimator's bars share one colour, and it is no controller's (DFS blue read as "the DFS bar")
+    from matplotlib.colors import to_rgba
+
+    legend = {text.get_text(): handle.get_facecolor() for text, handle in zip(ax.get_legend().get_texts(), ax.get_legend().legend_handles)}
+    controller_colours = {to_rgba(style["color"]) for style in (*plotting._STYLES.values(), plotting.TUNED_STYLE)}
+    estimator_colours = {legend[f"jaxflex, {est}"] for est in red}
+    assert len(estimator_colours) == 2 and not estimator_colours & controller_colours
+    bars = [p for p in ax.patches if not p.get_hatch()]
+    assert [p.get_facecolor() for p in bars] == [legend["jaxflex, hann-1024"]] * 8 + [legend["jaxflex, hann-256"]] * 8
 
 
 def test_histograms_show_decades_equal_values_and_empty_metrics():
