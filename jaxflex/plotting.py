@@ -162,12 +162,34 @@ def _response_panel(ax: plt.Axes, t: np.ndarray, values: Mapping[str, np.ndarray
     ax.grid(alpha=0.3)
 
 
-def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Sequence[float], ylabel: str, title: str, fmax: float | None = None, style_of: Mapping[str, str] | None = None) -> plt.Figure:
+def _psd_fmax(freqs: np.ndarray, mode_freqs_hz: Sequence[float]) -> float:
+    """psds' default upper frequency: 150 Hz or 1.5 times the highest mode, whichever is
+    higher, within the estimate's frequencies."""
+    return min(float(np.max(freqs)), max(150.0, 1.5 * max(mode_freqs_hz, default=0.0)))
+
+
+def psd_limits(freqs: np.ndarray, curves: Sequence[np.ndarray], mode_freqs_hz: Sequence[float]) -> tuple[float, float] | None:
+    """Log-scale y-limits that hold every finite, positive value of ``curves`` up to psds'
+    default upper frequency, with a margin of 5 % of the decades on each side; None when
+    there is no such value. For figures meant to be read side by side (fig6 and fig8)."""
+    keep = np.asarray(freqs) <= _psd_fmax(freqs, mode_freqs_hz)
+    values = np.concatenate([np.asarray(c, dtype=float)[keep] for c in curves]) if len(curves) else np.zeros(0)
+    values = values[np.isfinite(values) & (values > 0)]
+    if not values.size:
+        return None
+    lo, hi = float(values.min()), float(values.max())
+    margin = (hi / lo) ** 0.05 if hi > lo else 10.0
+    return lo / margin, hi * margin
+
+
+def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Sequence[float], ylabel: str, title: str, fmax: float | None = None, style_of: Mapping[str, str] | None = None, ylim: tuple[float, float] | None = None) -> plt.Figure:
     """Power spectral densities on a log scale with the model's modal frequencies marked, up to
     ``fmax`` (Hz; default: 150 Hz or 1.5 times the highest mode, whichever is higher, within
-    the estimate's frequencies). ``style_of``: run name -> the run whose line style it takes."""
+    the estimate's frequencies). ``style_of``: run name -> the run whose line style it takes.
+    ``ylim``: the y-axis limits (:func:`psd_limits` for figures shared with another); default
+    matplotlib's."""
     if fmax is None:
-        fmax = min(float(np.max(freqs)), max(150.0, 1.5 * max(mode_freqs_hz, default=0.0)))
+        fmax = _psd_fmax(freqs, mode_freqs_hz)
     fig, ax = plt.subplots(figsize=(7.5, 3.6))
     keep = freqs <= fmax
     styles = _styles(list(runs), style_of)
@@ -181,6 +203,8 @@ def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Seque
     for i, f in enumerate(shown):
         label = f"model modes ({', '.join(f'{g:.1f}' for g in shown)} Hz)" if i == 0 else None
         ax.axvline(f, color="k", lw=0.6, alpha=0.4, label=label)
+    if ylim is not None:
+        ax.set_ylim(*ylim)
     ax.set_xlabel("Frequency (Hz)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3, which="both")

@@ -242,9 +242,9 @@ TUNED_FIGURE = "fig_tuned_response.png"  # with --params only
 FIGURES = {
     "fig4_fuzzy_surface.png": "control surface of the fuzzy controller over the normalised (angle, velocity) square (paper Fig. 4)",
     "fig5_dfs_response.png": "q1 and tip deflection, DFS against open loop, and beside them the stretch in which DFS settles (paper Fig. 5)",
-    "fig6_dfs_psd.png": "PSD of the tip deflection, DFS against open loop (paper Fig. 6)",
+    "fig6_dfs_psd.png": "PSD of the tip deflection, DFS against open loop, on fig8's scale (paper Fig. 6)",
     "fig7_fuzzy_response.png": "q1 and tip deflection, PD-fuzzy against open loop, and beside them the stretch in which PD-fuzzy settles (paper Fig. 7)",
-    "fig8_fuzzy_psd.png": "PSD of the tip deflection, PD-fuzzy against open loop (paper Fig. 8)",
+    "fig8_fuzzy_psd.png": "PSD of the tip deflection, PD-fuzzy against open loop, on fig6's scale (paper Fig. 8)",
     "fig9_reduction.png": "vibration reduction in dB at each mode, per PSD estimator, beside the paper's (paper Fig. 9)",
 }
 
@@ -486,12 +486,14 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         signals = lambda tr: {"q1": np.asarray(tr.x[:, 1]), "tip": np.asarray(tr.z[:, 1])}
         sig = {name: signals(tr) for name, tr in trajectories.items()}
         panels = [("q1", "q1 (m)"), ("tip", "Tip deflection (m)")]
+        # fig6 and fig8 on one scale, to be read side by side (a non-finite curve is not drawn)
+        shared = plotting.psd_limits(freqs_psd, [c for name, c in psd_curves.items() if name in ("open_loop", "dfs", "fuzzy") and np.all(np.isfinite(c))], mode_freqs)
         for run, resp, psdfig in (("dfs", "fig5_dfs_response.png", "fig6_dfs_psd.png"), ("fuzzy", "fig7_fuzzy_response.png", "fig8_fuzzy_psd.png")):
             label = plotting.LABELS[run]
             pair = {"open_loop": sig["open_loop"], run: sig[run]}
             plotting.save(plotting.responses(t, pair, panels, div, f"Modal displacement and tip deflection with {label}"), os.path.join(stage, resp))
             curves = {"open_loop": psd_curves["open_loop"], run: psd_curves[run]}
-            plotting.save(plotting.psds(freqs_psd, curves, mode_freqs, "PSD of tip deflection (m^2/Hz)", f"PSD with {label} ({next(iter(ESTIMATORS))})"), os.path.join(stage, psdfig))
+            plotting.save(plotting.psds(freqs_psd, curves, mode_freqs, "PSD of tip deflection (m^2/Hz)", f"PSD with {label} ({next(iter(ESTIMATORS))})", ylim=shared), os.path.join(stage, psdfig))
         paper_db = {run: PAPER[run]["reduction_db"] for run in ("dfs", "fuzzy")}
         plotting.save(plotting.reduction_bars(by_estimator, paper_db), os.path.join(stage, "fig9_reduction.png"))
         grid = jnp.linspace(-1.0, 1.0, 41, dtype=dtype)

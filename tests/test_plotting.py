@@ -286,3 +286,15 @@ def test_runs_that_all_settle_early_end_the_time_axis_and_runs_that_ring_keep_th
     for decay in (0.8, 2.0):  # 1 % of the peak never, and at 2.3 s
         fig = plotting.responses(t, {"open_loop": {"tip": _ringing(t, decay)}}, [("tip", "Tip (m)")], {}, "open loop")
         assert len(fig.axes) == 1 and fig.axes[0].get_xlim()[1] >= 3.0 and not fig.axes[0].texts
+
+
+def test_psd_limits_hold_every_curve_up_to_the_drawn_frequency():
+    freqs = np.linspace(0.0, 500.0, 501)
+    a, b = np.full(501, 1e-8), np.full(501, 1e-12)
+    a[300], b[10] = 1.0, 0.0  # beyond 150 Hz: not drawn; a zero: not on a log axis
+    lo, hi = plotting.psd_limits(freqs, [a, b], [13.3, 36.5])
+    assert lo == pytest.approx(1e-12 / 10**0.2) and hi == pytest.approx(1e-8 * 10**0.2)  # 5 % of the 4 decades each side
+    assert plotting.psd_limits(freqs, [a], [200.0]) == pytest.approx((1e-8 / 10**0.4, 10**0.4))  # up to 300 Hz: 8 decades
+    assert plotting.psd_limits(freqs, [np.zeros(501)], [13.3]) is None
+    ax = plotting.psds(freqs, {"open_loop": a, "dfs": b}, [13.3], "PSD", "t", ylim=(1e-13, 1e-7)).axes[0]
+    assert ax.get_ylim() == pytest.approx((1e-13, 1e-7))

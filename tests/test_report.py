@@ -836,7 +836,19 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys, monke
         return responses(t, runs, *args, **kwargs)
 
     monkeypatch.setattr(plotting, "responses", recorded)
+    scales, psds = [], plotting.psds
+
+    def recorded_psds(freqs, runs, modes, *args, **kwargs):
+        scales.append((kwargs.get("ylim"), [np.asarray(c)[np.asarray(freqs) <= 150.0] for c in runs.values()]))
+        return psds(freqs, runs, modes, *args, **kwargs)
+
+    monkeypatch.setattr(plotting, "psds", recorded_psds)
     assert cli.main(["reproduce", "--out", str(out), "--params", str(tuned)]) == 0
+    # fig6 and fig8 on one scale that holds every curve of both (they each had their own decades)
+    (ylim6, curves6), (ylim8, curves8) = scales
+    assert ylim6 == ylim8 and ylim6 is not None
+    every = np.concatenate(curves6 + curves8)
+    assert ylim6[0] < every.min() <= every.max() < ylim6[1] < 10 * every.max()
     # the tuned figure's legend: "DFS (paper gains)" in DFS's look (it read "DFS" beside "tuned dfs")
     assert drawn[-1] == (["open_loop", "DFS (paper gains)", "tuned dfs"], {"DFS (paper gains)": "dfs"})
     tuned_for = "another arm (length_m = 0.6), 3 modes (here 2), dt = 0.0005 s (here 0.001 s), method = 'zoh' (here 'rk4')"
