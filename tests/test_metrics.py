@@ -154,6 +154,9 @@ def test_diverged():
     for bad in (-1.0, 0.0, np.nan, "1e6", [1.0, 2.0]):  # a bound <= 0 called every run diverged
         with pytest.raises(ValueError, match="threshold must be a (real )?number"):
             diverged(x, threshold=bad)
+    for bad in ("abc", [True, False]):  # JAX's TypeError for the string, named nothing
+        with pytest.raises(ValueError, match="x must be a real number or an array of real numbers"):
+            diverged(bad)
 
 
 def test_run_diverged_counts_a_tip_beyond_the_arm():

@@ -209,6 +209,8 @@ def diverged(x: ArrayLike, threshold: ArrayLike = DIVERGENCE_THRESHOLD) -> jax.A
         arr = checks.real_array("threshold", threshold, scalar=True)
         if arr.ndim != 0 or not arr > 0:  # a bound <= 0 called every run diverged
             raise ValueError(f"threshold must be a number > 0 (a bound on |x|; inf for non-finite entries only); got {threshold!r}")
+    if is_concrete(x):
+        checks.real_array("x", x)  # a string was JAX's TypeError, naming no parameter
     x = jnp.asarray(x)
     return jnp.logical_or(~jnp.all(jnp.isfinite(x)), jnp.any(jnp.abs(x) > threshold))
 
