@@ -568,7 +568,7 @@ def _unroll_program(program: str, batch: int, unroll: int, horizon: int) -> tupl
     from jaxflex.montecarlo import MCConfig, _Runner
 
     if program == "montecarlo chunk":
-        runner = _Runner(MCConfig(n_scenarios=batch, chunk=batch), unroll=unroll)
+        runner = _Runner(MCConfig(n_scenarios=batch, chunk=batch, unroll=unroll))
         scenarios = jax.device_put(runner.sample(1), runner.sharding)
         return runner.evaluate, (scenarios,), scenarios.force.shape[-2]
     fn, args = make_benchmark(BenchConfig(batch=batch, horizon=horizon, mode=program.split()[-1], unroll=unroll))
@@ -576,7 +576,9 @@ def _unroll_program(program: str, batch: int, unroll: int, horizon: int) -> tupl
 
 
 def _scaled_difference(a: Any, b: Any) -> float:
-    """The largest ``|a - b|`` of any leaf, over that leaf's largest finite ``|a|``."""
+    """The largest difference between the leaves of ``a`` and ``b``: ``|a - b|`` over the
+    leaf's largest finite ``|a|`` (1 where that is 0, as for flags) where both are finite,
+    and inf where one is not finite and the other differs (NaN against inf or a number)."""
     import jax
     import numpy as np
 
@@ -584,9 +586,10 @@ def _scaled_difference(a: Any, b: Any) -> float:
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
         finite = np.isfinite(x) & np.isfinite(y)
-        scale = np.max(np.abs(x[finite]), initial=0.0)
-        if scale > 0:
-            worst = max(worst, float(np.max(np.abs(x[finite] - y[finite])) / scale))
+        if not np.array_equal(x[~finite], y[~finite], equal_nan=True):
+            return float("inf")
+        scale = np.max(np.abs(x[finite]), initial=0.0) or 1.0
+        worst = max(worst, float(np.max(np.abs(x[finite] - y[finite]), initial=0.0)) / scale)
     return worst
 
 
@@ -612,7 +615,6 @@ def section_unroll(emit: Callable, runs: int, min_time: float, horizon: int, bat
                     "steps_per_second": batch * steps / median, "speedup": base / median, "first_call_s": first[unroll],
                     "max_scaled_difference": _scaled_difference(outputs[unrolls[0]], outputs[unroll]),
                 })
-            del calls, outputs  # the next program's buffers: one program's unrolls in memory at a time
 
 
 # -- ab: before / after the layout changes ---------------------------------------------------

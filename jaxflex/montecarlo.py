@@ -54,18 +54,8 @@ REDUCTION_DOC = (
     "10 log10 of the open-loop over the closed-loop energy of the tip deflection at mode i of the scenario's own plant "
     "(Hann-windowed single-bin DFT over the horizon, streamed in the rollout) (dB)"
 )
-UNROLL = {"gpu": 8}
-"""Samples per compiled loop iteration of the Monte Carlo rollouts, by JAX backend (1 for any
-other). On an H100, 8 ran a chunk of 4,096 or 65,536 scenarios 3.8x and 3.0x as fast as 1,
-with the same metrics to the last bit; on the CPU, 2 ran it 2.4x slower (benchmarks/README.md,
-"Scan unrolling")."""
-
-
-def loop_unroll(backend: str | None = None) -> int:
-    """``rollout``'s ``unroll`` for the Monte Carlo runs on ``backend`` (default: JAX's)."""
-    return UNROLL.get(jax.default_backend() if backend is None else backend, 1)
-
-
+MAX_UNROLL = 64
+"""MCConfig.unroll's largest value: each sample of an iteration is compiled once more."""
 REDUCTION_LABEL = "vibration reduction at mode i: open over closed-loop energy of the tip deflection (dB)"
 """``REDUCTION_DOC`` short enough for a histogram's axis (it took four lines under the panel)."""
 
@@ -91,6 +81,11 @@ class MCConfig:
       band_scenarios: scenarios of chunk 0 whose tip deflection feeds the percentile-band plot.
       beam: the nominal arm (plain numbers; default the paper's); plant perturbations are
         drawn around it.
+      unroll: samples per compiled loop iteration (``rollout``'s ``unroll``), in [1, 64].
+        On an H100, 8 ran a chunk 3.0-3.8x as fast as 1 (2.6-2.7x in another process) but
+        compiled for 5-6 s longer, which pays from about 0.4 million scenarios at a chunk
+        of 4,096 and 4.6 million at 65,536; on the CPU it is 2.4-4.7x slower
+        (benchmarks/README.md, "Scan unrolling"). Default 1.
     """
 
     controller: str = "dfs+fuzzy"
@@ -108,6 +103,7 @@ class MCConfig:
     fuzzy_temperature: float = 0.0
     band_scenarios: int = 256
     beam: BeamParams = BeamParams()
+    unroll: int = 1
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
@@ -115,6 +111,7 @@ class MCConfig:
         for name in ("n_scenarios", "chunk", "capacity", "pade_order", "band_scenarios"):
             object.__setattr__(self, name, checks.integer(name, getattr(self, name)))
         object.__setattr__(self, "n_modes", beam.check_n_modes(self.n_modes))
+        object.__setattr__(self, "unroll", checks.integer("unroll", self.unroll, 1, high=MAX_UNROLL))
         object.__setattr__(self, "seed", checks.seed("seed", self.seed))
         if not isinstance(self.params, dict) or not all(isinstance(k, str) for k in self.params):
             raise ValueError(f"params must be a dict of parameter values by name; got {self.params!r}")
@@ -197,12 +194,10 @@ def _metrics_row(m: RunMetrics, open_loop_energy: jax.Array, length_m: float) ->
 
 
 class _Runner:
-    """Jitted, sharded chunk evaluation for one configuration; ``unroll`` defaults to
-    :func:`loop_unroll`'s for JAX's backend."""
+    """Jitted, sharded chunk evaluation for one configuration."""
 
-    def __init__(self, config: MCConfig, unroll: int | None = None):
+    def __init__(self, config: MCConfig):
         self.config = config
-        self.unroll = loop_unroll() if unroll is None else checks.integer("unroll", unroll)
         spec = config.scenarios
         self.beam = config.beam
         self.controller, self.params = controller_and_params(
@@ -219,8 +214,8 @@ class _Runner:
         def evaluate(batch: Scenario) -> dict[str, jax.Array]:
             plant = batch_plant(self.beam, config.n_modes, spec.dt, config.method, batch, self.nominal)
             freqs = batch_modes_hz(self.beam, config.n_modes, batch)
-            closed = rollout(plant, self.controller, self.params, batch, output="metrics", mode_freqs_hz=freqs, unroll=self.unroll)
-            opened = rollout(plant, open_loop(), OpenLoopParams(), batch, output="metrics", mode_freqs_hz=freqs, unroll=self.unroll)
+            closed = rollout(plant, self.controller, self.params, batch, output="metrics", mode_freqs_hz=freqs, unroll=config.unroll)
+            opened = rollout(plant, open_loop(), OpenLoopParams(), batch, output="metrics", mode_freqs_hz=freqs, unroll=config.unroll)
             return jax.vmap(partial(_metrics_row, length_m=self.beam.length_m))(closed, opened.modal_energy)
 
         self.evaluate = jax.jit(evaluate)

@@ -91,10 +91,11 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
             raise ValueError(f"runs[{run!r}] lacks signal(s) {missing}; it has {sorted(sig)}")
     t = np.asarray(t, dtype=float)
     values = {run: {name: np.asarray(sig[name]) for name, _ in signals} for run, sig in runs.items()}
-    settled = {run: _run_settled(t, list(sig.values())) for run, sig in values.items() if not diverged.get(run, False)}
-    span = float(t[-1] - t[0]) if t.size > 1 else 0.0
-    quick = [s for s in settled.values() if s is not None and s - t[0] < ZOOM_FRACTION * span]
-    end = float(t[0]) + max(1.25 * (max(quick) - t[0]), 0.05 * span) if quick and max(quick) > t[0] else None
+    quick, end = [], None
+    if t.size > 1:
+        settled = [_run_settled(t, list(sig.values())) for run, sig in values.items() if not diverged.get(run, False)]
+        quick = [s for s in settled if s is not None and s - t[0] < ZOOM_FRACTION * (t[-1] - t[0])]
+        end = _view_end(t, max(quick)) if quick and max(quick) > t[0] else None
     whole = end is not None and len(quick) == len(runs)  # every run settles early: no column to compare
     zoom = end is not None and not whole
     fig, axes = plt.subplots(len(signals), 2 if zoom else 1, figsize=(11.0 if zoom else 7.5, 2.6 * len(signals)), sharex="col", squeeze=False, gridspec_kw={"width_ratios": [2, 1]} if zoom else None)
@@ -108,9 +109,9 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
             axes[row, 1].set_xlim(float(t[0]), end)
     if whole:
         axes[0, 0].set_xlim(float(t[0]), end)
-        axes[-1, 0].text(0.99, 0.03, f"from {max(quick):.3g} s to the horizon ({t[-1]:.3g} s) every run stays within {SETTLED_FRACTION:.0%} of its peak", transform=axes[-1, 0].transAxes, ha="right", va="bottom", fontsize=8, color="0.3")
+        _settled_note(axes[-1, 0], max(quick), float(t[-1]), "every run stays within {} of its largest excursion from its final value")
     if zoom:
-        axes[0, 1].set_title(f"The first {end - t[0]:.2g} s", fontsize=9)
+        axes[0, 1].set_title(f"The first {_seconds(end - t[0], 2)} s", fontsize=9)
         axes[-1, 1].set_xlabel("Time (s)")
     axes[0, 0].legend(loc="upper right", fontsize=8)
     axes[-1, 0].set_xlabel("Time (s)")
@@ -124,18 +125,18 @@ ZOOM_FRACTION = 1 / 3
 
 
 def _run_settled(t: np.ndarray, signals: Sequence[np.ndarray]) -> float | None:
-    """The time from which every signal stays within SETTLED_FRACTION of its own largest
-    finite magnitude; None when one has no finite value or does not settle before the
-    last sample."""
+    """The time from which every signal stays within SETTLED_FRACTION of its largest
+    excursion from its final value (its last sample; a hub angle settles at an offset);
+    None when a value is not finite or a signal has not settled by the last sample."""
     latest = float(t[0])
     for v in signals:
-        magnitude = np.abs(np.asarray(v, dtype=float))
-        if not np.all(np.isfinite(magnitude)):
+        deviation = np.abs(np.asarray(v, dtype=float) - float(np.asarray(v, dtype=float)[-1]))
+        if not np.all(np.isfinite(deviation)):
             return None
-        active = np.flatnonzero(magnitude > SETTLED_FRACTION * magnitude.max())
-        if active.size and active[-1] + 1 >= len(t):
+        settled = _settle_time(t, deviation)
+        if settled is None:
             return None
-        latest = max(latest, float(t[active[-1] + 1]) if active.size else latest)
+        latest = max(latest, settled)
     return latest
 
 
@@ -400,7 +401,7 @@ def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[flo
         view = _settled_view(t, bands)
         ax.set_xlim(float(t[0]), float(t[-1]) if view is None else view[1])
         if view is not None:
-            ax.text(0.99, 0.03, f"from {view[0]:.3g} s to the horizon ({t[-1]:.3g} s) every band stays within {SETTLED_FRACTION:.0%} of the largest value drawn", transform=ax.transAxes, ha="right", va="bottom", fontsize=8, color="0.3")
+            _settled_note(ax, view[0], float(t[-1]), "every band stays within {} of the largest value drawn")
     ax.set_xlabel("Time (s)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
@@ -409,23 +410,49 @@ def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[flo
     return fig
 
 
-SETTLED_FRACTION = 0.01  # percentile_bands: bands this close to zero, relative to their largest value, have settled
+SETTLED_FRACTION = 0.01  # percentile_bands and responses: this close to zero (or to a final value), relative to the largest value, has settled
+
+
+def _settle_time(t: np.ndarray, deviation: np.ndarray) -> float | None:
+    """The time of the first sample after which ``deviation`` (finite, >= 0) stays within
+    SETTLED_FRACTION of its largest value: ``t[0]`` when it is all zero, None when the last
+    sample is outside."""
+    active = np.flatnonzero(deviation > SETTLED_FRACTION * deviation.max())
+    if not active.size:
+        return float(t[0])
+    return float(t[active[-1] + 1]) if active[-1] + 1 < len(t) else None
+
+
+def _view_end(t: np.ndarray, settled: float) -> float:
+    """Where a time axis ends for a response settled at ``settled``: a quarter past it, at
+    least 5 % of the horizon."""
+    start, span = float(t[0]), float(t[-1]) - float(t[0])
+    return start + max(1.25 * (settled - start), 0.05 * span)
+
+
+def _seconds(value: float, digits: int = 3) -> str:
+    """``value`` to ``digits`` significant digits, without an exponent (200, not 2e+02)."""
+    return np.format_float_positional(value, precision=digits, unique=True, fractional=False, trim="-")
+
+
+def _settled_note(ax: plt.Axes, settled: float, horizon: float, claim: str) -> None:
+    """The note under a time axis that ends before the horizon; ``claim`` holds ``{}`` for
+    the fraction."""
+    text = f"from {_seconds(settled)} s to the horizon ({_seconds(horizon)} s) {claim.format(f'{SETTLED_FRACTION:.0%}')}"
+    ax.text(0.99, 0.03, text, transform=ax.transAxes, ha="right", va="bottom", fontsize=8, color="0.3")
 
 
 def _settled_view(t: np.ndarray, bands: np.ndarray) -> tuple[float, float] | None:
     """(settled, end): the time from which every band stays within SETTLED_FRACTION of the
-    largest finite value, and where percentile_bands ends its time axis, a quarter past it
-    (at least 5 % of the horizon). None, to draw the whole horizon: no finite value, or an
-    end that would leave out less than half of the horizon (a response settled in 0.4 s
-    filled a tenth of a 3 s figure)."""
+    largest finite value, and where percentile_bands ends its time axis (``_view_end``).
+    None, to draw the whole horizon: no finite value, or an end that would leave out less
+    than half of the horizon (a response settled in 0.4 s filled a tenth of a 3 s figure)."""
     magnitude = np.where(np.isfinite(bands), np.abs(bands), 0.0).max(axis=0)
-    active = np.flatnonzero(magnitude > SETTLED_FRACTION * magnitude.max())
-    if not active.size:
+    settled = _settle_time(t, magnitude) if magnitude.max() > 0 else None
+    if settled is None:
         return None
-    start, span = float(t[0]), float(t[-1]) - float(t[0])
-    settled = float(t[min(active[-1] + 1, len(t) - 1)])  # the first sample of the settled tail
-    end = start + max(1.25 * (settled - start), 0.05 * span)
-    return (settled, end) if end - start < 0.5 * span else None
+    end = _view_end(t, settled)
+    return (settled, end) if end - float(t[0]) < 0.5 * (float(t[-1]) - float(t[0])) else None
 
 
 def stability_chart(

@@ -214,14 +214,14 @@ def rollout(
         (metrics only); for a batch, shared or [B, n_f].
       unroll: samples per iteration of the compiled loop (``lax.scan``'s ``unroll``), an
         integer >= 1. It changes the speed, not the model: XLA may fuse and round otherwise
-        (on the H100 the Monte Carlo metrics were the same to the last bit; on the CPU, in
-        float32, a final hub angle moved by 1e-9 rad, a settling time by one sample, and the
-        largest dB reductions, where the closed-loop energy nears the float's resolution, by
-        up to 1.8 dB at 116 dB, the median one by 0.005 dB). Measured
+        (on the H100 every finite value of the Monte Carlo's metrics was the same to the bit; on the
+        CPU, in float32, a final hub angle moved by 1e-9 rad, a settling time by one sample,
+        and the largest dB reductions, where the closed-loop energy nears the float's
+        resolution, by up to 1.8 dB at 116 dB, the median one by 0.005 dB). Measured
         (benchmarks/README.md, "Scan unrolling"): on an H100, 8 runs forward-only rollouts
-        1.4-3.8x as fast as 1 and gradients 15 % slower; on the CPU, 2 runs forward-only
-        rollouts 2.4-3.1x slower and gradients 1.2x slower.
-        :func:`jaxflex.montecarlo.loop_unroll` picks it by backend for the Monte Carlo runs.
+        1.4-3.8x as fast as 1, after 5-6 s more compiling, and gradients 15 % slower; on the
+        CPU, 2 runs forward-only rollouts 2.4-3.2x slower and gradients 1.2x slower.
+        ``MCConfig.unroll`` passes it for the Monte Carlo runs.
 
     Raises:
       ValueError: naming a plant that is not a DiscretePlant, a controller that is not a

@@ -95,6 +95,8 @@ def test_bench_config_validation():
         BenchConfig(capacity=4)  # shorter than the benchmarked 5-sample delay
     with pytest.raises(ValueError, match="unroll must be an integer >= 1; got 0"):
         BenchConfig(unroll=0)
+    fn, args = make_benchmark(BenchConfig(unroll=2, batch=2, horizon=10))
+    assert str(jax.make_jaxpr(fn)(*args)).count("unroll=2") == 1  # it reaches the rollout's loop
     for bad in (-0.1, float("inf"), float("nan"), True):
         with pytest.raises(ValueError, match="min_time_s must be a finite number of seconds >= 0"):
             BenchConfig(min_time_s=bad)
@@ -333,7 +335,12 @@ def test_cost_section_fits_its_own_rows_and_tabulates_them(tmp_path):
 def test_unroll_section_compares_each_program_with_the_plain_loop_and_tabulates_it(tmp_path):
     from benchmarks.bench_rollout import Emitter, _scaled_difference, render_tables, section_unroll
 
-    assert _scaled_difference({"a": np.array([2.0, np.inf]), "b": 1.0}, {"a": np.array([1.5, 7.0]), "b": 1.0}) == 0.25  # finite entries, over the leaf's scale
+    assert _scaled_difference({"a": np.array([2.0, 4.0]), "b": 1.0}, {"a": np.array([1.5, 4.0]), "b": 1.0}) == 0.125  # over the leaf's largest |a|
+    assert _scaled_difference({"a": np.array([2.0, np.inf, np.nan])}, {"a": np.array([2.0, np.inf, np.nan])}) == 0.0
+    for other in (7.0, -np.inf, np.nan):  # a settling time of inf against a number, a flipped sign, NaN against inf
+        assert _scaled_difference({"a": np.array([2.0, np.inf])}, {"a": np.array([2.0, other])}) == np.inf
+    assert _scaled_difference({"diverged": np.array([False, False])}, {"diverged": np.array([False, True])}) == 1.0  # a flag flipped
+    assert _scaled_difference({"x": np.zeros(3)}, {"x": np.full(3, 0.5)}) == 0.5  # an all-zero leaf: absolute
     emit = Emitter({"affinity_cores": 2})
     section_unroll(emit, runs=2, min_time=0.0, horizon=20, batches=(4,), grad_batch=4, unrolls=(1, 2))
     rows = emit.rows

@@ -253,39 +253,60 @@ def _ringing(t, decay_per_s, amplitude=1e-3):
     return amplitude * np.exp(-decay_per_s * t) * np.cos(2 * np.pi * 13.3 * t)
 
 
+def _settles(t, v):
+    """The first time after which |v - v[-1]| stays within 1 % of its largest value."""
+    deviation = np.abs(v - v[-1])
+    return t[np.flatnonzero(deviation > 0.01 * deviation.max())[-1] + 1]
+
+
 def test_a_run_that_settles_early_gets_a_zoomed_column_beside_the_whole_horizon():
     """The paper's DFS settles in about 0.25 s of 3 s and filled a twelfth of the figure's
-    width beside the ringing open loop: a second column shows the first stretch."""
+    width beside the ringing open loop: a second column shows the stretch until every
+    signal of it has settled (here the tip, slower than q1)."""
     t = np.arange(3000) * 1e-3
-    closed = _ringing(t, 25.0)
-    settle = t[np.flatnonzero(np.abs(closed) > 0.01 * np.abs(closed).max())[-1] + 1]  # 1 % of its peak from here on
-    runs = {"open_loop": {"q1": _ringing(t, 0.8), "tip": 2 * _ringing(t, 0.8)}, "dfs": {"q1": closed, "tip": 2 * closed}}
+    q1, tip = _ringing(t, 40.0), 2 * _ringing(t, 20.0)
+    settle = _settles(t, tip)
+    assert _settles(t, q1) < settle
+    runs = {"open_loop": {"q1": _ringing(t, 0.8), "tip": 2 * _ringing(t, 0.8)}, "dfs": {"q1": q1, "tip": tip}}
     fig = plotting.responses(t, runs, [("q1", "q1 (m)"), ("tip", "Tip (m)")], {}, "DFS")
     (whole_q, zoom_q), (whole_tip, zoom_tip) = np.array(fig.axes).reshape(2, 2)
     assert whole_q.get_xlim()[1] >= 3.0 and [line.get_xdata()[-1] for line in whole_q.get_lines()] == [t[-1], t[-1]]
     for ax in (zoom_q, zoom_tip):
         assert ax.get_xlim() == pytest.approx((0.0, 1.25 * settle))
         assert all(line.get_xdata()[-1] <= 1.25 * settle for line in ax.get_lines()) and len(ax.get_lines()) == 2
-    assert zoom_q.get_title() == f"The first {1.25 * settle:.2g} s" and 0.1 < settle < 0.3
+    assert 0.2 < settle < 0.35 and zoom_q.get_title() == f"The first {np.format_float_positional(1.25 * settle, precision=2, fractional=False, trim='-')} s"
     assert zoom_tip.get_ylim()[1] == pytest.approx(whole_tip.get_ylim()[1], rel=0.1)  # the open loop's first swings set both
-    # a diverged run is no settled run: the zoom stays, drawn on the settled runs' scale
-    grown = {"q1": closed * np.exp(40 * t), "tip": 2 * closed * np.exp(40 * t)}
-    fig = plotting.responses(t, {**runs, "fuzzy": grown}, [("q1", "q1 (m)"), ("tip", "Tip (m)")], {"fuzzy": True}, "x")
-    assert len(fig.axes) == 4 and fig.axes[1].get_xlim() == pytest.approx((0.0, 1.25 * settle))
+    # a run that settles within a hundredth of the horizon: the zoom spans 5 % of it at least
+    fast = _ringing(t, 600.0)
+    fig = plotting.responses(t, {"open_loop": runs["open_loop"], "dfs": {"q1": fast, "tip": fast}}, [("q1", "q1 (m)"), ("tip", "Tip (m)")], {}, "DFS")
+    assert _settles(t, fast) < 0.01 and fig.axes[1].get_xlim() == pytest.approx((0.0, 0.05 * t[-1]))
 
 
 def test_runs_that_all_settle_early_end_the_time_axis_and_runs_that_ring_keep_the_horizon():
     t = np.arange(3000) * 1e-3
     quick, slower = _ringing(t, 25.0), _ringing(t, 12.0)
-    settle = t[np.flatnonzero(np.abs(slower) > 0.01 * np.abs(slower).max())[-1] + 1]
-    fig = plotting.responses(t, {"paper gains": {"tip": slower}, "tuned": {"tip": quick}}, [("tip", "Tip (m)")], {}, "tuned")
-    (ax,) = fig.axes
-    assert ax.get_xlim() == pytest.approx((0.0, 1.25 * settle)) and settle < 1.0
-    assert [text.get_text() for text in ax.texts] == [f"from {settle:.3g} s to the horizon (3 s) every run stays within 1% of its peak"]
-    # a run that rings to the end (or past a third of the horizon) keeps the whole horizon, alone
+    hub = 3e-4 * (1 - np.exp(-20 * t))  # settles at an offset, as the hub angle does
+    settle = max(_settles(t, slower), _settles(t, hub))
+    fig = plotting.responses(t, {"paper gains": {"tip": slower, "hub": hub}, "tuned": {"tip": quick, "hub": hub}}, [("tip", "Tip (m)"), ("hub", "Hub (rad)")], {}, "tuned")
+    assert len(fig.axes) == 2 and fig.axes[0].get_xlim() == pytest.approx((0.0, 1.25 * settle)) and settle < 1.0
+    note = f"from {np.format_float_positional(settle, precision=3, fractional=False, trim='-')} s to the horizon (3 s) every run stays within 1% of its largest excursion from its final value"
+    assert [text.get_text() for text in fig.axes[1].texts] == [note]
+    # a run that rings to the end (or settles past a third of the horizon) keeps the whole horizon, alone
     for decay in (0.8, 2.0):  # 1 % of the peak never, and at 2.3 s
         fig = plotting.responses(t, {"open_loop": {"tip": _ringing(t, decay)}}, [("tip", "Tip (m)")], {}, "open loop")
         assert len(fig.axes) == 1 and fig.axes[0].get_xlim()[1] >= 3.0 and not fig.axes[0].texts
+    # a run that diverged, or holds a NaN, is not settled, however it ends: the others are
+    # shown beside the whole horizon, not alone
+    broken = quick.copy()
+    broken[100] = np.nan
+    for run, div in (({"tip": quick}, {"tuned": True}), ({"tip": broken}, {})):
+        fig = plotting.responses(t, {"paper gains": {"tip": slower}, "tuned": run}, [("tip", "Tip (m)")], div, "tuned")
+        assert len(fig.axes) == 2 and fig.axes[1].get_xlim() == pytest.approx((0.0, 1.25 * _settles(t, slower)))
+    # a long horizon in plain seconds (it read "2e+02" and "3e+03"); no time at all draws empty axes
+    long = np.arange(3000) * 1.0
+    fig = plotting.responses(long, {"a": {"tip": _ringing(long / 1000, 25.0)}}, [("tip", "Tip (m)")], {}, "long")
+    assert "to the horizon (3000 s)" in fig.axes[0].texts[0].get_text()
+    assert len(plotting.responses(np.zeros(0), {"a": {"tip": np.zeros(0)}}, [("tip", "Tip (m)")], {}, "empty").axes) == 1
 
 
 def test_psd_limits_hold_every_curve_up_to_the_drawn_frequency():

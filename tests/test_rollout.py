@@ -742,8 +742,8 @@ def test_an_unrolled_loop_computes_the_same_run(plant2):
         plain = jf.rollout(plant2, controller, params, batch, output=output, **({"mode_freqs_hz": freqs} if output == "metrics" else {}))
         unrolled = jf.rollout(plant2, controller, params, batch, output=output, unroll=3, **({"mode_freqs_hz": freqs} if output == "metrics" else {}))
         tree_allclose(unrolled, plain, rtol=1e-12, atol=1e-18)
-    jaxpr = jax.make_jaxpr(lambda p: jf.rollout(plant2, controller, p, batch, output="metrics", unroll=3))(params)
-    assert [e.params["unroll"] for e in jaxpr.eqns if e.primitive.name == "scan"] == [3]  # reaches the loop
+        jaxpr = jax.make_jaxpr(lambda p: jf.rollout(plant2, controller, p, batch, output=output, unroll=3))(params)
+        assert [e.params["unroll"] for e in jaxpr.eqns if e.primitive.name == "scan"] == [3]  # reaches the loop
 
 
 @pytest.mark.parametrize("unroll", [0, -2, 1.5, True, "8", None])
