@@ -694,10 +694,89 @@ def _memory_note(meta: dict[str, Any]) -> str:
     return "".join(notes)
 
 
-def render_tables(paths: list[str]) -> str:
-    """Markdown tables from result documents (``--out`` files)."""
+def _kind_tables(rows: list[dict[str, Any]], tables: tuple[tuple[str, str, Callable], ...]) -> list[str]:
+    """One Markdown table per ``(kind, header, line)`` whose kind has rows: the header, then
+    ``line(row, rows)`` for each row of that kind, then a blank line."""
+    out = []
+    for kind, header, line in tables:
+        of_kind = [r for r in rows if r["kind"] == kind]
+        if of_kind:
+            out += [header, *(line(r, rows) for r in of_kind), ""]
+    return out
+
+
+def _grad_ops_line(r: dict[str, Any], rows: list[dict[str, Any]]) -> str:
+    scans = " + ".join(str(n) for n in r["jaxpr_grad_scans"])
+    return (
+        f"| {r['controller']} | {r['defuzz'] or '-'} | {r['n_params']} | {r['jaxpr_forward']} | {scans} | {r['jaxpr_ratio']:.1%} "
+        f"| {r['xla_forward']:.0f} | {r['xla_grad']:.0f} | {r['xla_ratio']:.1%} |"
+    )
+
+
+def _ab_line(r: dict[str, Any], rows: list[dict[str, Any]]) -> str:
+    label = lambda v: f"{r['rev']}" if v == "old" else "new"  # noqa: E731
+    return f"| {label(r['rollout'])} | {label(r['fuzzy'])} | {r['mode']} | {r['batch']} | {_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {r['compile_s']:.2f} |"
+
+
+def _cost_fit_line(r: dict[str, Any], rows: list[dict[str, Any]]) -> str:
+    rates = ", ".join(f"{c['batch']}: {_fmt(c['steps_per_second'])}" for c in rows if c["kind"] == "cost" and (c["controller"], c["defuzz"]) == (r["controller"], r["defuzz"]))
+    return f"| {r['controller']} | {r['defuzz'] or '-'} | {rates} | {r['fixed_us_per_step']:.2f} µs | {r['ns_per_scenario_step']:.2f} ns | {_fmt(r['limit_steps_per_second'])} |"
+
+
+def _rollout_line(r: dict[str, Any], rows: list[dict[str, Any]]) -> str:
     from jaxflex.bench import format_spread
 
+    capacity = r.get("capacity", 64 if "dfs" in r["controller"] else None)  # rows from before the field: the default
+    return (
+        f"| {r['controller']} | {r['defuzz'] or '-'} | {capacity or '-'} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {r['mode']} | "
+        f"{_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {format_spread(r)} | {r['compile_s']:.2f} | {r['cpu_util']:.2f} |"
+    )
+
+
+# (kind, header, line) of render_tables: the first four before the baselines' two tables
+_TABLES: tuple[tuple[str, str, Callable], ...] = (
+    (
+        "matmul",
+        "| matmul n | jnp.dot GFLOP/s (median / best) | NumPy GFLOP/s (median / best) |\n|---:|---:|---:|",
+        lambda r, rows: f"| {r['n']} | {r['jax_gflops']:.1f} / {r['jax_gflops_best']:.1f} | {r['numpy_gflops']:.1f} / {r['numpy_gflops_best']:.1f} |",
+    ),
+    (
+        "flops",
+        "| controller | defuzz | FLOPs / step | transcendental / step |\n|---|---|---:|---:|",
+        lambda r, rows: f"| {r['controller']} | {r['defuzz'] or '-'} | {r['flops_per_step']} | {r['transcendental_per_step']} |",
+    ),
+    (
+        "grad_ops",
+        "| controller | defuzz | params | jaxpr: forward | jaxpr: value_and_grad (forward + reverse) | ratio "
+        "| XLA per scenario: forward | XLA: value_and_grad | ratio |\n|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        _grad_ops_line,
+    ),
+    (
+        "memory",
+        "| output | batch | horizon | temp MiB | argument MiB | output MiB |\n|---|---:|---:|---:|---:|---:|",
+        lambda r, rows: f"| {r['output']} | {r['batch']} | {r['horizon']} | {r['temp_bytes'] / 2**20:.2f} | {r['argument_bytes'] / 2**20:.2f} | {r['output_bytes'] / 2**20:.2f} |",
+    ),
+    ("ab", "| rollout.py | fuzzy.py | mode | batch | steps/s (median) | steps/s (best) | compile s |\n|---|---|---|---:|---:|---:|---:|", _ab_line),
+    (
+        "unroll",
+        "| program | batch | horizon | unroll | steps/s (median) | speedup | first call s | max difference / leaf scale |\n|---|---:|---:|---:|---:|---:|---:|---:|",
+        lambda r, rows: f"| {r['program']} | {r['batch']} | {r['horizon']} | {r['unroll']} | {_fmt(r['steps_per_second'])} | {r['speedup']:.2f}x | {r['first_call_s']:.1f} | {r['max_scaled_difference']:.1e} |",
+    ),
+    (
+        "cost_fit",
+        "| controller | defuzz | steps/s at each batch (median) | fixed cost per step, per device | per scenario-step, per device | rate at any batch at most |\n|---|---|---|---:|---:|---:|",
+        _cost_fit_line,
+    ),
+    (
+        "rollout",
+        "| controller | defuzz | DFS buffer | integrator | dtype | batch | horizon | mode | steps/s (median) | steps/s (best) | p10-p90 (calls) | compile s | CPU util |\n|---|---|---:|---|---|---:|---:|---|---:|---:|---:|---:|---:|",
+        _rollout_line,
+    ),
+)
+
+
+def render_tables(paths: list[str]) -> str:
+    """Markdown tables from result documents (``--out`` files)."""
     docs = []
     for path in paths:
         with open(path, encoding="utf-8") as f:
@@ -713,37 +792,7 @@ def render_tables(paths: list[str]) -> str:
             f"{meta['time_utc']}. GPU: {meta.get('gpu', '-')}.{_memory_note(meta)}\n\nCommand: `{meta['command']}`\n"
         )
         kinds = {r["kind"] for r in rows}
-        if "matmul" in kinds:
-            out.append("| matmul n | jnp.dot GFLOP/s (median / best) | NumPy GFLOP/s (median / best) |\n|---:|---:|---:|")
-            for r in rows:
-                if r["kind"] == "matmul":
-                    out.append(f"| {r['n']} | {r['jax_gflops']:.1f} / {r['jax_gflops_best']:.1f} | {r['numpy_gflops']:.1f} / {r['numpy_gflops_best']:.1f} |")
-            out.append("")
-        if "flops" in kinds:
-            out.append("| controller | defuzz | FLOPs / step | transcendental / step |\n|---|---|---:|---:|")
-            for r in rows:
-                if r["kind"] == "flops":
-                    out.append(f"| {r['controller']} | {r['defuzz'] or '-'} | {r['flops_per_step']} | {r['transcendental_per_step']} |")
-            out.append("")
-        if "grad_ops" in kinds:
-            out.append(
-                "| controller | defuzz | params | jaxpr: forward | jaxpr: value_and_grad (forward + reverse) | ratio "
-                "| XLA per scenario: forward | XLA: value_and_grad | ratio |\n|---|---|---:|---:|---:|---:|---:|---:|---:|"
-            )
-            for r in rows:
-                if r["kind"] == "grad_ops":
-                    scans = " + ".join(str(n) for n in r["jaxpr_grad_scans"])
-                    out.append(
-                        f"| {r['controller']} | {r['defuzz'] or '-'} | {r['n_params']} | {r['jaxpr_forward']} | {scans} | {r['jaxpr_ratio']:.1%} "
-                        f"| {r['xla_forward']:.0f} | {r['xla_grad']:.0f} | {r['xla_ratio']:.1%} |"
-                    )
-            out.append("")
-        if "memory" in kinds:
-            out.append("| output | batch | horizon | temp MiB | argument MiB | output MiB |\n|---|---:|---:|---:|---:|---:|")
-            for r in rows:
-                if r["kind"] == "memory":
-                    out.append(f"| {r['output']} | {r['batch']} | {r['horizon']} | {r['temp_bytes'] / 2**20:.2f} | {r['argument_bytes'] / 2**20:.2f} | {r['output_bytes'] / 2**20:.2f} |")
-            out.append("")
+        out += _kind_tables(rows, _TABLES[:4])
         if kinds & {"baseline", "baseline_check", "rollout_vs_baseline"}:
             out.append("| check | controller | max rel. error vs jaxflex | tolerance |\n|---|---|---:|---:|")
             for r in rows:
@@ -757,36 +806,7 @@ def render_tables(paths: list[str]) -> str:
                 elif r["kind"] == "rollout_vs_baseline":
                     out.append(f"| jaxflex | {r['dtype']} | {r['batch']} | {r['horizon']} | {_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} |")
             out.append("")
-        if "ab" in kinds:
-            out.append("| rollout.py | fuzzy.py | mode | batch | steps/s (median) | steps/s (best) | compile s |\n|---|---|---|---:|---:|---:|---:|")
-            for r in rows:
-                if r["kind"] == "ab":
-                    label = lambda v: f"{r['rev']}" if v == "old" else "new"  # noqa: E731
-                    out.append(f"| {label(r['rollout'])} | {label(r['fuzzy'])} | {r['mode']} | {r['batch']} | {_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {r['compile_s']:.2f} |")
-            out.append("")
-        if "unroll" in kinds:
-            out.append("| program | batch | horizon | unroll | steps/s (median) | speedup | first call s | max difference / leaf scale |\n|---|---:|---:|---:|---:|---:|---:|---:|")
-            for r in rows:
-                if r["kind"] == "unroll":
-                    out.append(f"| {r['program']} | {r['batch']} | {r['horizon']} | {r['unroll']} | {_fmt(r['steps_per_second'])} | {r['speedup']:.2f}x | {r['first_call_s']:.1f} | {r['max_scaled_difference']:.1e} |")
-            out.append("")
-        if "cost_fit" in kinds:
-            out.append("| controller | defuzz | steps/s at each batch (median) | fixed cost per step, per device | per scenario-step, per device | rate at any batch at most |\n|---|---|---|---:|---:|---:|")
-            for r in rows:
-                if r["kind"] == "cost_fit":
-                    rates = ", ".join(f"{c['batch']}: {_fmt(c['steps_per_second'])}" for c in rows if c["kind"] == "cost" and (c["controller"], c["defuzz"]) == (r["controller"], r["defuzz"]))
-                    out.append(f"| {r['controller']} | {r['defuzz'] or '-'} | {rates} | {r['fixed_us_per_step']:.2f} µs | {r['ns_per_scenario_step']:.2f} ns | {_fmt(r['limit_steps_per_second'])} |")
-            out.append("")
-        rollouts = [r for r in rows if r["kind"] == "rollout"]
-        if rollouts:
-            out.append("| controller | defuzz | DFS buffer | integrator | dtype | batch | horizon | mode | steps/s (median) | steps/s (best) | p10-p90 (calls) | compile s | CPU util |\n|---|---|---:|---|---|---:|---:|---|---:|---:|---:|---:|---:|")
-            for r in rollouts:
-                capacity = r.get("capacity", 64 if "dfs" in r["controller"] else None)  # rows from before the field: the default
-                out.append(
-                    f"| {r['controller']} | {r['defuzz'] or '-'} | {capacity or '-'} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {r['mode']} | "
-                    f"{_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {format_spread(r)} | {r['compile_s']:.2f} | {r['cpu_util']:.2f} |"
-                )
-            out.append("")
+        out += _kind_tables(rows, _TABLES[4:])
         skipped = [r for r in rows if r["kind"] == "skipped"]
         for r in skipped:
             out.append(f"- skipped {r['config']}: {r['reason']}")
