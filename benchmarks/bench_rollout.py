@@ -594,6 +594,8 @@ def _scaled_difference(a: Any, b: Any) -> float:
 
 
 def section_unroll(emit: Callable, runs: int, min_time: float, horizon: int, batches: tuple[int, ...], grad_batch: int, unrolls: tuple[int, ...]) -> None:
+    """Each program at each batch: its ``unrolls`` compiled, run once (the first call, and the
+    output compared with the first unroll's), then timed in interleaved rounds."""
     import jax
     import numpy as np
 

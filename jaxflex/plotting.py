@@ -67,10 +67,10 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
 
     A run that settles early would fill a sliver of the horizon (the paper's DFS settles in
     0.25 s of 3 s). A run has settled from the first sample after which each of its signals
-    stays within ``SETTLED_FRACTION`` of its own largest magnitude. When every run drawn
-    settles within ``ZOOM_FRACTION`` of the horizon, the time axis ends a quarter past the
-    last of them (as :func:`percentile_bands` does) and a note gives the moment; when only
-    some do (an open loop rings on), a second column shows that stretch.
+    stays within ``SETTLED_FRACTION`` of its largest excursion from its final value. When
+    every run drawn settles within ``ZOOM_FRACTION`` of the horizon, the time axis ends a
+    quarter past the last of them (as :func:`percentile_bands` does) and a note gives the
+    moment; when only some do (an open loop rings on), a second column shows that stretch.
 
     Args:
       t: [T] time (s).
@@ -100,11 +100,11 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
     zoom = end is not None and not whole
     fig, axes = plt.subplots(len(signals), 2 if zoom else 1, figsize=(11.0 if zoom else 7.5, 2.6 * len(signals)), sharex="col", squeeze=False, gridspec_kw={"width_ratios": [2, 1]} if zoom else None)
     styles = _styles(list(runs), style_of)
+    n = int(np.searchsorted(t, end, side="right")) if zoom else 0  # the zoom's samples
     for row, (name, ylabel) in enumerate(signals):
         _response_panel(axes[row, 0], t, {run: sig[name] for run, sig in values.items()}, diverged, styles)
         axes[row, 0].set_ylabel(ylabel)
         if zoom:
-            n = int(np.searchsorted(t, end, side="right"))
             _response_panel(axes[row, 1], t[:n], {run: sig[name][:n] for run, sig in values.items()}, diverged, styles)
             axes[row, 1].set_xlim(float(t[0]), end)
     if whole:
@@ -130,7 +130,8 @@ def _run_settled(t: np.ndarray, signals: Sequence[np.ndarray]) -> float | None:
     None when a value is not finite or a signal has not settled by the last sample."""
     latest = float(t[0])
     for v in signals:
-        deviation = np.abs(np.asarray(v, dtype=float) - float(np.asarray(v, dtype=float)[-1]))
+        v = np.asarray(v, dtype=float)
+        deviation = np.abs(v - v[-1])
         if not np.all(np.isfinite(deviation)):
             return None
         settled = _settle_time(t, deviation)
