@@ -175,6 +175,9 @@ def psd_limits(freqs: np.ndarray, curves: Sequence[np.ndarray], mode_freqs_hz: S
     default upper frequency, with a margin of 5 % of the decades on each side; None when
     there is no such value. For figures meant to be read side by side (fig6 and fig8)."""
     keep = np.asarray(freqs) <= _psd_fmax(freqs, mode_freqs_hz)
+    for i, c in enumerate(curves):
+        if np.shape(c) != keep.shape:
+            raise ValueError(f"curves[{i}] must have the shape of freqs {keep.shape} (one PSD value per frequency); got {np.shape(c)}")
     values = np.concatenate([np.asarray(c, dtype=float)[keep] for c in curves]) if len(curves) else np.zeros(0)
     values = values[np.isfinite(values) & (values > 0)]
     if not values.size:

@@ -317,5 +317,7 @@ def test_psd_limits_hold_every_curve_up_to_the_drawn_frequency():
     assert lo == pytest.approx(1e-12 / 10**0.2) and hi == pytest.approx(1e-8 * 10**0.2)  # 5 % of the 4 decades each side
     assert plotting.psd_limits(freqs, [a], [200.0]) == pytest.approx((1e-8 / 10**0.4, 10**0.4))  # up to 300 Hz: 8 decades
     assert plotting.psd_limits(freqs, [np.zeros(501)], [13.3]) is None
+    with pytest.raises(ValueError, match=r"curves\[1\] must have the shape of freqs \(501,\) \(one PSD value per frequency\); got \(500,\)"):
+        plotting.psd_limits(freqs, [a, b[:500]], [13.3])
     ax = plotting.psds(freqs, {"open_loop": a, "dfs": b}, [13.3], "PSD", "t", ylim=(1e-13, 1e-7)).axes[0]
     assert ax.get_ylim() == pytest.approx((1e-13, 1e-7))
