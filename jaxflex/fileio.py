@@ -21,6 +21,8 @@ import time
 import tomllib
 from typing import Any, Callable, Iterable, Iterator, Mapping
 
+import numpy as np
+
 try:
     import fcntl
 except ImportError:  # not POSIX: no locks, so the leftovers of killed runs are kept
@@ -197,10 +199,21 @@ def to_jsonable(value: Any, *, finite: bool = True) -> Any:
     if isinstance(value, (list, tuple)):
         return [to_jsonable(v, finite=finite) for v in value]
     if hasattr(value, "tolist"):
-        return to_jsonable(value.tolist(), finite=finite)
+        return to_jsonable(shortest(value), finite=finite)
     if isinstance(value, float) and finite:
         return value if math.isfinite(value) else None
     return value
+
+
+def shortest(value: Any) -> Any:
+    """A NumPy/JAX scalar or array as Python values (``tolist``), each float narrower than
+    float64 as the shortest decimal that reads back to it in its own dtype: a float32 55 + 1 ulp
+    is 55.000008, not the 55.00000762939453 of its float64 widening, so that a file shows the
+    digits the run computed and no more."""
+    array = np.asarray(value)
+    if array.dtype.kind == "f" and array.dtype.itemsize < 8:
+        return np.array([float(str(x)) for x in array.ravel()]).reshape(array.shape).tolist()
+    return array.tolist()
 
 
 def digest(fields: Mapping[str, Any]) -> str:

@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -411,6 +412,17 @@ def test_to_jsonable_keeps_non_finite_numbers_when_asked():
     kept = fileio.to_jsonable(value, finite=False)
     assert kept["a"] == [math.inf, 1.5] and math.isnan(kept["b"][0]) and kept["b"][1] == -math.inf and kept["1"] == 2
     assert fileio.to_jsonable(value) == {"a": [None, 1.5], "b": [None, None], "1": 2}
+
+
+def test_files_show_a_narrow_float_with_its_own_digits():
+    # float32 values, as the runs compute them, read back exactly but print short; float64 and
+    # integers pass unchanged, and non-finite values still become None
+    above_55 = np.float32(55) + 2 * np.spacing(np.float32(55))  # exp(log(55)) in float32
+    value = {"k": above_55, "c": jnp.asarray([[0.1, np.inf]], jnp.float32), "d": np.float64(0.1) + 1e-17 * 3, "n": np.arange(2)}
+    out = fileio.to_jsonable(value)
+    assert out == {"k": 55.000008, "c": [[0.1, None]], "d": float(np.float64(0.1) + 1e-17 * 3), "n": [0, 1]}
+    assert np.float32(out["k"]) == above_55 and float(above_55) == 55.00000762939453
+    assert json.loads(json.dumps(out))["c"] == [[0.1, None]]
 
 
 def test_program_changes_with_the_source_of_either_package(tmp_path, monkeypatch):

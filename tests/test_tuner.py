@@ -932,7 +932,13 @@ def test_reported_spectral_radius_is_float64_in_a_float32_run(tmp_path):
     with jax.enable_x64(False):
         state = tune(TuneConfig(controller="dfs", steps=1, eval_every=1, **SHARED), tmp_path, progress=False)
         assert jax.tree.leaves(state["best_raw"])[0].dtype == jnp.float32  # the run itself is float32
-        st = summarize(state)["stability"]
+        summary = summarize(state)
+        st = summary["stability"]
+    # history.csv and tuned.json give each float32 number the digits float32 holds and no more:
+    # the initial k, exp(log(55)), is 55.000008, which they wrote as 55.00000762939453
+    numbers = [s for line in (tmp_path / "history.csv").read_text().splitlines()[1:] for s in line.split(",")[1:] if s]
+    numbers += [repr(v) for v in (*summary["params"].values(), *summary["initial_params"].values(), summary["objective"]["heldout"]["after"])]
+    assert len(numbers) == 7 + 6 + 5 and all(str(np.float32(s)) == s for s in numbers), numbers
     with jax.enable_x64(True):
         plant = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")  # TuneConfig's default method
         paper = float(stability.spectral_radius(plant, 55.0, 5))  # the paper's k = 55, tau = 5 ms

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxflex import fileio
 from jaxflex.controllers import Controller, DFSParams, by_name, combine
 from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy_params
 
@@ -31,7 +32,8 @@ class TunedController(NamedTuple):
         interpolation or a Pade filter, each differentiable in tau).
       to_physical: raw (unconstrained) pytree -> controller parameters.
       to_raw: controller parameters -> raw pytree.
-      named: controller parameters -> {"k": .., "tau_s": .., "k1": ..} (Python floats).
+      named: controller parameters -> {"k": .., "tau_s": .., "k1": ..} (Python floats, each
+        the shortest decimal that reads back to it in its dtype: `fileio.shortest`).
       from_named: such a dict -> controller parameters (paper values for missing names).
       paper: the paper's parameters.
     """
@@ -77,7 +79,7 @@ def _dfs_parts(dt: float, capacity: int, delay: str, pade_order: int):
         frac = np.clip((tau - lo) / (hi - lo), 1e-6, 1 - 1e-6)
         return {"log_k": jnp.log(jnp.asarray(p.k, float)), "tau_z": _logit(jnp.asarray(frac, jnp.asarray(p.k, float).dtype))}
 
-    named = lambda p: {"k": float(np.asarray(p.k)), "tau_s": float(np.asarray(p.tau_s))}
+    named = lambda p: {"k": fileio.shortest(p.k), "tau_s": fileio.shortest(p.tau_s)}
     from_named = lambda d: build(params=d)[1]
     return controller, to_physical, to_raw, named, from_named, paper
 
@@ -103,7 +105,7 @@ def _fuzzy_parts(dt: float, temperature: float):
             out[f"log_{name}"] = jnp.log(jnp.asarray(getattr(p, name), float))
         return out
 
-    named = lambda p: {name: float(np.asarray(getattr(p, name))) for name in ("k1", "k2", "k3")}
+    named = lambda p: {name: fileio.shortest(getattr(p, name)) for name in ("k1", "k2", "k3")}
     from_named = lambda d: build(params=d)[1]
     return controller, to_physical, to_raw, named, from_named, paper
 

@@ -474,14 +474,14 @@ def _tune_locked(
                                      "depend on them (too short a horizon for the controller's torque to reach what [objective] weighs, or "
                                      "scenarios with nothing to respond to); lengthen [scenarios] horizon_s, or check [scenarios] and [objective]")
                 state["raw"], state["opt_state"], state["step"] = raw, opt_state, n + 1
-            row = {"step": n, **{k: float(v) for k, v in info.items()}}
+            row = {"step": n, **{k: fileio.shortest(v) for k, v in info.items()}}
             row.update(problem.tc.named(problem.tc.to_physical(at)))
             if carried is not None and n == carried["step"] and "val_objective" in carried:
                 row["val_objective"] = carried["val_objective"]
                 if n % config.eval_every == 0:  # where a longer run would have stopped
                     state["stopped_early"] = state["bad_evals"] >= config.patience
             elif (n % config.eval_every == 0 or final) and math.isfinite(row["loss"]):
-                val = float(problem.evaluate(at, problem.heldout)[0])
+                val = fileio.shortest(problem.evaluate(at, problem.heldout)[0])
                 row["val_objective"] = val
                 if val < state["best_val"]:
                     state["best_val"], state["best_raw"], state["best_step"], state["bad_evals"] = val, at, n, 0
@@ -525,7 +525,7 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
     problem: Problem = state["problem"]
     tc = problem.tc
     best = state["best_raw"]
-    ev = lambda raw, batch: float(problem.evaluate(raw, batch)[1]["objective"])
+    ev = lambda raw, batch: fileio.shortest(problem.evaluate(raw, batch)[1]["objective"])
     out: dict[str, Any] = {
         "controller": problem.config.controller,
         "params": tc.named(tc.to_physical(best)),
