@@ -430,6 +430,13 @@ def test_validation():
         fuzzy_params(k3="1.0")
     with pytest.raises(ValueError, match=r"centres must be a real number or an array of real numbers"):
         fuzzy_params(centres=("-1", "-0.5", "0", "0.5", "1"))
+    # a value beyond the dtype's range is named with that range: cast, it became infinite and
+    # `check` refused "[-inf, -1.0, ...]", which the caller had not given
+    with pytest.raises(ValueError, match=r"centres must lie in \[-3\.403e\+38, 3\.403e\+38\] to be held in float32.*got \[-1e\+39, -1, 0, 1, 1e\+39\]"):
+        fuzzy_params(centres=[-1e39, -1, 0, 1, 1e39], dtype=jnp.float32)
+    with pytest.raises(ValueError, match=r"k3 must lie in .* to be held in bfloat16"):
+        fuzzy_params(k3=-1e39, dtype=jnp.bfloat16)
+    assert float(fuzzy_params(k3=1e39).k3) == 1e39  # float64 holds it
     # traced values are built as they are (checked where used), and bfloat16 is a real dtype
     assert float(jax.jit(lambda k: fuzzy_params(k, 0.3).k1)(2.0)) == 2.0
     assert float(jax.grad(lambda k: 3.0 * fuzzy_params(k).k1)(1.0)) == 3.0

@@ -174,14 +174,16 @@ def fuzzy_params(
 
     Raises:
       ValueError: naming a concrete argument that is not a real number (or, for
-        ``centres``, an array of them).
+        ``centres``, an array of them), or one beyond the range of ``dtype``.
     """
-    for name, value in (("k1", k1), ("k2", k2), ("k3", k3)):
+    dtype = checks.float_dtype("dtype", dtype)
+    biggest = float(jnp.finfo(dtype).max)
+    for name, value in (("k1", k1), ("k2", k2), ("k3", k3), ("centres", centres)):
         if is_concrete(value):  # traced values (jit, grad, vmap) are checked where they are used
-            checks.real_array(name, value, scalar=True)
-    if is_concrete(centres):
-        checks.real_array("centres", centres)
-    dtype = float if dtype is None else checks.float_dtype("dtype", dtype)
+            arr = checks.real_array(name, value, scalar=name != "centres").astype(float)
+            if np.any(np.isfinite(arr) & (np.abs(arr) > biggest)):  # cast, they would become infinite
+                raise ValueError(f"{name} must lie in [-{biggest:.4g}, {biggest:.4g}] to be held in {dtype.name} "
+                                 f"(dtype=jnp.float64 with jax_enable_x64); got {value!r}")
     c = jnp.asarray(centres, dtype=dtype)
     return FuzzyParams(
         k1=jnp.asarray(k1, dtype=dtype),
