@@ -66,11 +66,11 @@ def _run_metrics(traj, dt: float) -> dict[str, Any]:
     is_diverged = bool(run_diverged(diverged(traj.x), jnp.maximum(-tip.min, tip.max), beam.BeamParams().length_m))
     out: dict[str, Any] = {"diverged": is_diverged}
     for name, m in metrics.items():
-        values = {"min": float(m.min), "max": float(m.max), "settling_time_s": float(m.settling_time_s), "ise": float(m.ise), "iae": float(m.iae)}
+        values = {k: fileio.shortest(getattr(m, k)) for k in ("min", "max", "settling_time_s", "ise", "iae")}
         out[name] = {k: None for k in values} if is_diverged else values
-    out["samples"] = {name: [float(v) for v in samples_at(signals[name], dt, SAMPLE_TIMES_S)] for name in ("q1", "hub_angle_rad")}
+    out["samples"] = {name: fileio.shortest(samples_at(signals[name], dt, SAMPLE_TIMES_S)) for name in ("q1", "hub_angle_rad")}
     out["samples"]["t_s"] = list(SAMPLE_TIMES_S)
-    out["control_effort"] = float(jnp.sum(traj.u**2) * dt)
+    out["control_effort"] = fileio.shortest(jnp.sum(traj.u**2) * dt)
     return out
 
 
@@ -392,7 +392,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
 
     say(f"building the {n_modes}-mode model")
     plant = discretize(make_plant(params, n_modes), DT, "rk4")
-    freqs_model = np.asarray(beam.natural_frequencies_hz(params, n_modes), float)
+    freqs_model = np.asarray(beam.natural_frequencies_hz(params, n_modes))  # in the run's dtype
     freqs_exact = beam.exact_natural_frequencies_hz(beam.BeamParams(), max(n_modes, 2))
     pinned_free = beam.exact_natural_frequencies_hz(beam.BeamParams(hub_inertia_kg_m2=1e-12), 1)[0]
     alpha, beta = beam.rayleigh_coefficients(params)
@@ -430,7 +430,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         }
 
     say("estimating PSDs")
-    mode_freqs = freqs_model
+    mode_freqs = freqs_model.astype(float)
     by_estimator: dict[str, dict[str, list[float]]] = {}
     psd_curves: dict[str, dict[str, np.ndarray]] = {}
     for est_name, settings in ESTIMATORS.items():
@@ -440,25 +440,25 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
             psd_curves = {name: np.asarray(p[1]) for name, p in psd.items()}
             freqs_psd = f
         by_estimator[est_name] = {
-            run: [None if runs[run]["diverged"] else float(v) for v in vibration_reduction_db(f, psd["open_loop"][1], psd[run][1], mode_freqs, REL_BAND)]
+            run: [None if runs[run]["diverged"] else fileio.shortest(v) for v in vibration_reduction_db(f, psd["open_loop"][1], psd[run][1], mode_freqs, REL_BAND)]
             for run in ("dfs", "fuzzy")
         }
     default = ESTIMATORS[next(iter(ESTIMATORS))]
     f_q1, psd_q1_open = welch(trajectories["open_loop"].x[:, 1], 1 / DT, settings=default)
     reduction_q1 = {
-        run: [None if runs[run]["diverged"] else float(v) for v in vibration_reduction_db(f_q1, psd_q1_open, welch(trajectories[run].x[:, 1], 1 / DT, settings=default)[1], mode_freqs, REL_BAND)]
+        run: [None if runs[run]["diverged"] else fileio.shortest(v) for v in vibration_reduction_db(f_q1, psd_q1_open, welch(trajectories[run].x[:, 1], 1 / DT, settings=default)[1], mode_freqs, REL_BAND)]
         for run in ("dfs", "fuzzy")
     }
 
     results: dict[str, Any] = {
         "model": {
             "n_modes": n_modes,
-            "natural_frequencies_hz": freqs_model.tolist(),
-            "exact_natural_frequencies_hz": freqs_exact[: max(n_modes, 2)].tolist(),
-            "pinned_free_bound_hz": float(pinned_free),
+            "natural_frequencies_hz": fileio.shortest(freqs_model),
+            "exact_natural_frequencies_hz": fileio.shortest(freqs_exact[: max(n_modes, 2)]),
+            "pinned_free_bound_hz": fileio.shortest(pinned_free),
             "paper_natural_frequencies_hz": PAPER["natural_frequencies_hz"],
-            "rayleigh_alpha": float(alpha),
-            "rayleigh_beta": float(beta),
+            "rayleigh_alpha": fileio.shortest(alpha),
+            "rayleigh_beta": fileio.shortest(beta),
             "dt_s": DT,
             "horizon_s": HORIZON_S,
             "integrator": "rk4",

@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -49,6 +50,21 @@ def test_results_json_has_the_documented_keys(reproduced):
     assert res["runs"]["open_loop"]["q1"]["max"] == pytest.approx(1e-3, rel=1e-9)
     assert res["runs"]["open_loop"]["q1"]["settling_time_s"] is None  # 1 % damping: not settled in 3 s
     assert 0 < res["runs"]["dfs"]["q1"]["settling_time_s"] < 1.0
+
+
+def test_a_float32_run_writes_float32_digits(tmp_path):
+    """results.json of a float32 run (the default; the other tests run float64) wrote the
+    paper's q1(0) = 1e-3 m as 0.0010000000474974513, its float64 widening."""
+    with jax.enable_x64(False):
+        assert cli.main(["reproduce", "--modes", "1", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["model"]["dtype"] == "float32" and res["runs"]["open_loop"]["q1"]["max"] == 0.001
+    numbers = [*res["model"]["natural_frequencies_hz"], res["model"]["rayleigh_alpha"], res["model"]["rayleigh_beta"]]
+    for run in res["runs"].values():
+        numbers += [run["control_effort"], *run["samples"]["q1"], *run["samples"]["hub_angle_rad"]]
+        numbers += [v for signal in ("q1", "tip_deflection_m", "hub_angle_rad") for v in run[signal].values() if v is not None]
+    numbers += [v for values in res["vibration_reduction_db"].values() for v in values]
+    assert len(numbers) > 50 and all(str(np.float32(v)) == repr(v) for v in numbers), numbers
 
 
 def test_figures_and_report_are_written(reproduced):
