@@ -169,6 +169,14 @@ def test_toml_reads_back_as_a_config_with_the_measured_frequencies():
     assert "damping_ratio = 0.01  # not used: rayleigh_alpha and rayleigh_beta set the damping" in to_toml(result)
     one = to_toml(calibrate(measured, PAPER, ("youngs_modulus_pa",), damping=[0.02]))
     assert "not used" not in one and "rayleigh" not in one
+    assert "method" not in one and config.method == "rk4"  # the paper's integrator, which serves 3 modes at 1 ms
+    # 8 modes: one RK4 step of the default 1 ms grows mode 8 (516 Hz), which tune and montecarlo
+    # refused ("method = 'rk4' with dt = 0.001 s is unstable for this arm"); the file says so
+    # and asks for the exact zero-order hold
+    eight = to_toml(calibrate(measured[:2], PAPER, ("youngs_modulus_pa",), n_modes=8))
+    assert re.search(r"grows this arm's 5\d\d\.\d Hz mode;\n# the zero-order hold is exact for the arm at any dt\.\nmethod = \"zoh\"\n", eight)
+    config = TuneConfig.from_mapping(tomllib.loads(eight))
+    assert (config.n_modes, config.method) == (8, "zoh")
 
 
 def test_cli_writes_a_config_the_other_commands_read(tmp_path, capsys):

@@ -35,6 +35,8 @@ import numpy as np
 import scipy.optimize
 
 from jaxflex import beam, checks
+from jaxflex.plant import make_plant, rk4_amplified_omega
+from jaxflex.scenarios import ScenarioSpec
 
 FITTABLE = tuple(name for name in beam.BeamParams._fields if name not in ("damping_ratio", "rayleigh_alpha", "rayleigh_beta"))
 """The arm's physical constants: every field of ``BeamParams`` but the damping."""
@@ -276,8 +278,17 @@ def to_toml(calibration: Calibration) -> str:
     unused = {"damping_ratio": "  # not used: rayleigh_alpha and rayleigh_beta set the damping (remove both to use it)"} if arm.rayleigh_alpha is not None else {}
     fields = "\n".join(f"{name} = {float(value)!r}{unused.get(name, '')}" for name, value in arm._asdict().items() if value is not None)
     measured = ", ".join(f"{f:g}" for f in calibration.measured_hz)
+    # tune's and montecarlo's default integrator would refuse an arm whose fastest mode one RK4
+    # step at the default dt grows (8 modes of the paper's arm at 1 ms): the exact ZOH serves
+    dt = ScenarioSpec().dt
+    with jax.enable_x64(True):
+        grown = rk4_amplified_omega(make_plant(arm, calibration.n_modes), dt)
+    method = "" if grown is None else (
+        f"# RK4 (tune's and montecarlo's default) at [scenarios] dt = {dt:g} s grows this arm's {grown / (2 * np.pi):.1f} Hz mode;\n"
+        '# the zero-order hold is exact for the arm at any dt.\nmethod = "zoh"\n'
+    )
     return (
         f"# jaxflex calibrate: the arm fitted to {measured} Hz (hub {calibration.hub}) with {calibration.n_modes} assumed modes.\n"
         "# Pass it as --config to jaxflex tune, montecarlo or stability, or copy n_modes and [beam] into your config.\n"
-        f"n_modes = {calibration.n_modes}\n\n[beam]\n{fields}\n"
+        f"n_modes = {calibration.n_modes}\n{method}\n[beam]\n{fields}\n"
     )
