@@ -59,8 +59,7 @@ def run(
       k_range: (k_lo, k_hi) of the chart; default ``[0, 3 k]`` (``[3 k, 0]`` for k < 0,
         ``[0, 150]`` for k = 0).
       tau_max_s: largest delay of the chart (s), from ``tau_s`` to 160 samples of dt (its sampled-loop
-        matrices grow with it); default ``max(8 tau, min(40 ms, 160 dt), 20 dt)``, so
-        ``tau_s`` up to ``20 dt`` (20 ms at 1 kHz).
+        matrices grow with it); default ``min(max(8 tau, 40 ms, 20 dt), 160 dt)``.
       n_k: chart columns (>= 2).
       n_tau: chart rows (>= 2); default every sample up to tau_max_s, at most 80.
       n_cheb: Chebyshev intervals of the continuous-loop generator (>= 2).
@@ -91,9 +90,10 @@ def run(
     k_lo, k_hi = (check_finite_scalar("k_range", v) for v in k_range)
     if not k_lo < k_hi:
         raise ValueError(f"k_range must be (k_lo, k_hi) with k_lo < k_hi; got {k_range}")
-    # The default's 40 ms floor is capped at the chart's limit (it alone is 400 samples at dt = 0.1 ms).
-    floor = min(0.04, _MAX_CHART_SAMPLES * dt)
-    tau_max = max(8 * tau, floor, 20 * dt) if tau_max_s is None else check_finite_scalar("tau_max_s", tau_max_s, positive=True)
+    # The default is capped at the chart's limit, which holds tau (checked above): 40 ms alone is
+    # 400 samples at dt = 0.1 ms, and 8 tau was refused from tau = 21 samples on, a range never typed.
+    limit = _MAX_CHART_SAMPLES * dt
+    tau_max = min(max(8 * tau, 0.04, 20 * dt), limit) if tau_max_s is None else check_finite_scalar("tau_max_s", tau_max_s, positive=True)
     if tau_max < tau:
         raise ValueError(f"tau_max_s must be at least the delay analysed, tau_s = {tau:g} s, so that the chart holds that point; got {tau_max:g} s")
     d_max = int(math.floor(tau_max / dt + 1e-9))
@@ -102,8 +102,8 @@ def run(
     if d_max > _MAX_CHART_SAMPLES:
         raise ValueError(
             f"the chart's delay range tau_max_s = {tau_max:g} s is {d_max} samples of dt = {dt:g} s; at most "
-            f"{_MAX_CHART_SAMPLES} are supported: pass tau_max_s (jaxflex stability --tau-max) from tau_s to {_MAX_CHART_SAMPLES * dt:g} s "
-            f"(its default, the largest of 8 tau_s, 40 ms and 20 samples, holds tau_s <= {_MAX_CHART_SAMPLES * dt / 8:g} s)"
+            f"{_MAX_CHART_SAMPLES} are supported: pass tau_max_s (jaxflex stability --tau-max) from tau_s to {limit:g} s, "
+            f"or leave it out (its default: the largest of 8 tau_s, 40 ms and 20 samples, at most {_MAX_CHART_SAMPLES})"
         )
     n_tau = min(d_max, _MAX_N_TAU) if n_tau is None else min(checks.integer("n_tau", n_tau, 2), d_max)
     delay_grid = np.unique(np.round(np.linspace(1, d_max, n_tau)).astype(np.int64))

@@ -477,8 +477,8 @@ def test_an_interrupted_report_leaves_the_earlier_pair_of_files(tmp_path, monkey
 def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
     """`jaxflex stability --tau 1` once ran out of memory after 40 s (8 s of delay samples per
     chart matrix); now it is refused at once, naming the range and the largest tau."""
-    with pytest.raises(ValueError, match=r"tau_max_s = 0.24 s is 240 samples of dt = 0.001 s; at most 160 are supported: pass tau_max_s \(jaxflex stability --tau-max\) from tau_s to 0.16 s \(its default, the largest of 8 tau_s, 40 ms and 20 samples, holds tau_s <= 0.02 s\)"):
-        stability_report.run(tmp_path, tau_s=0.03)
+    with pytest.raises(ValueError, match=r"tau_max_s = 0.24 s is 240 samples of dt = 0.001 s; at most 160 are supported: pass tau_max_s \(jaxflex stability --tau-max\) from tau_s to 0.16 s, or leave it out \(its default: the largest of 8 tau_s, 40 ms and 20 samples, at most 160\)"):
+        stability_report.run(tmp_path, tau_s=0.03, tau_max_s=0.24)
     # a delay no range can hold (5 ms typed as 5) is refused as such: the range's message sent
     # it to --tau-max, whose own check then asked for a range up to 5 s
     for tau, samples in ((1.0, 1000), (5.0, 5000), (0.161, 161)):
@@ -491,6 +491,11 @@ def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
         stability_report.run(tmp_path, tau_max_s=0.004)
     assert not list(tmp_path.iterdir())
     stability_report.run(tmp_path / "edge", tau_s=0.16, tau_max_s=0.16, n_k=2, n_tau=2, n_cheb=8)  # 160 samples: charted
+    # the default range stops at the chart's limit: 8 tau of 21-160 samples was refused, a range
+    # the user had not typed (`jaxflex stability --tau 0.021`)
+    for tau, top in ((0.021, 0.16), (0.16, 0.16), (0.004, 0.04), (0.01, 0.08)):
+        chart = stability_report.run(tmp_path / f"default{tau}", tau_s=tau, n_k=2, n_tau=2, n_cheb=8)["chart"]
+        assert chart["tau_range_s"][1] == pytest.approx(top, rel=1e-12), tau
 
 
 def test_cli_names_tau_beyond_the_chart_by_its_option(tmp_path, capsys):
