@@ -138,7 +138,7 @@ def _parser() -> argparse.ArgumentParser:
     stab.add_argument("--tau", type=float, default=None, help="DFS delay (s), a whole number of samples of dt (default 0.005, the paper's)")
     stab.add_argument("--modes", type=_positive_int, default=None, help="number of assumed modes (default: the config's n_modes, else 2)")
     stab.add_argument("--dt", type=float, default=None, help="sample time of the sampled loop (s; default: the config's [scenarios] dt, else 0.001)")
-    stab.add_argument("--tau-max", type=float, default=None, help="largest delay of the (k, tau) chart (s), from --tau to 160 samples of dt (default: the largest of 8 tau, 40 ms and 20 samples, 40 ms capped at 160 samples)")
+    stab.add_argument("--tau-max", type=float, default=None, help="largest delay of the (k, tau) chart (s), from --tau to 160 samples of dt (default: the largest of 8 tau, 40 ms and 20 samples, at most 160 samples)")
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
     stab.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the arm (default the paper's), its n_modes and [scenarios] dt the defaults of --modes and --dt; a top-level key neither tune nor montecarlo accepts is refused, the other keys are not read")
     stab.add_argument("--x64", action="store_true", help="accepted for symmetry; the analysis always runs in float64")
@@ -498,7 +498,7 @@ def _tune(args: argparse.Namespace) -> int:
         st = summary["stability"]
         part = " of the DFS part alone (the fuzzy part is nonlinear)" if summary["controller"] == "dfs+fuzzy" else ""
         verdict = "stable" if st["stable"] else "UNSTABLE: the loop grows at these gains"
-        print(f"sampled-loop spectral radius{part} {st['spectral_radius']:.8f}, {verdict} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {st['paper_spectral_radius']:.8f})")
+        print(f"sampled-loop spectral radius{part} {_radius(st['spectral_radius'])}, {verdict} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {_radius(st['paper_spectral_radius'])})")
     print(f"wrote {os.path.join(args.out, 'tuned.json')}, history.csv and figures")
     return 0
 
@@ -575,6 +575,12 @@ def _montecarlo(args: argparse.Namespace) -> int:
               f"of the {config.scenarios.horizon_s:g} s horizon (settling time +inf, left out of its statistics)", file=sys.stderr)
     print(f"wrote {os.path.join(args.out, 'summary.json')} and figures")
     return 0
+
+
+def _radius(r: float) -> str:
+    """A spectral radius with the 8 decimals that tell 0.99065454 from 1 apart, or 4 digits
+    when it is large (RK4's step on a stiff arm gave 3531649110.40803719)."""
+    return f"{r:.8f}" if r < 10 else f"{r:.4g}"
 
 
 def _arm_config(path: str | None):
@@ -714,8 +720,8 @@ def _stability(args: argparse.Namespace) -> int:
     first, sampled = result["first_destabilising_delay_s"], result["first_destabilising_delay_sampled_s"]
     rk4 = result["spectral_radius_rk4"]
     arm_name = f"the arm of {args.config}" if values.get("beam") else "the paper's arm"
-    print(f"{arm_name}, k = {args.k:g}, tau = {args.tau:g} s, {n_modes} modes, dt = {dt:g} s: sampled-loop spectral radius {result['spectral_radius']:.8f} "
-          f"({'stable' if result['stable_sampled'] else 'UNSTABLE'}; sampled by RK4, the default of tune and montecarlo: {rk4:.8f}, {'stable' if rk4 < 1 else 'UNSTABLE'}), "
+    print(f"{arm_name}, k = {args.k:g}, tau = {args.tau:g} s, {n_modes} modes, dt = {dt:g} s: sampled-loop spectral radius {_radius(result['spectral_radius'])} "
+          f"({'stable' if result['stable_sampled'] else 'UNSTABLE'}; sampled by RK4, the default of tune and montecarlo: {_radius(rk4)}, {'stable' if rk4 < 1 else 'UNSTABLE'}), "
           f"first destabilising delay {'none' if first is None else f'{first:g} s'} (continuous loop; sampled loop: "
           f"{'none up to ' + format(result['first_destabilising_delay_sampled_tau_max_s'], 'g') + ' s' if sampled is None else f'{sampled:g} s'})")
     print(f"wrote {os.path.join(args.out, 'stability.json')} and {os.path.join(args.out, 'stability_chart.png')}")

@@ -769,3 +769,12 @@ def test_rightmost_root_gradient_matches_central_differences(plant, k, tau):
         assert np.isfinite(float(jac[0, i])) and float(jac[0, i]) != 0.0
         np.testing.assert_allclose(float(jac[0, i]), fd.real, rtol=1e-6)
         np.testing.assert_allclose(float(jac[1, i]), fd.imag, rtol=1e-6, atol=1e-6 * abs(fd.real))
+
+
+def test_cli_prints_a_large_radius_in_4_digits():
+    """RK4's step on a 4 m thick arm (a thickness in mm typed as m) printed its radius as
+    3531649110.40803719; the 8 decimals stay where they tell a radius from 1."""
+    from jaxflex import cli
+
+    assert cli._radius(0.990654536) == "0.99065454" and cli._radius(9.5) == "9.50000000"
+    assert cli._radius(3531649110.40803719) == "3.532e+09"
