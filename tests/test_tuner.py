@@ -22,7 +22,7 @@ from jaxflex.analysis import stability
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
 from tuning.run import FIGURES
-from tuning.tuner import CHECKPOINT, Problem, TuneConfig, summarize, tune
+from tuning.tuner import CHECKPOINT, DELAY_NOTE, DELAYS, Problem, TuneConfig, summarize, tune
 
 RTOL_FD = 1e-5  # central differences, float64
 
@@ -954,3 +954,12 @@ def test_reported_spectral_radius_is_float64_in_a_float32_run(tmp_path):
     with jax.enable_x64(True):
         top = float(stability.spectral_radius(plant, float(jnp.exp(state["best_raw"]["log_k"])), 64))
     assert st["spectral_radius"] == pytest.approx(top, rel=1e-6, abs=0)
+
+
+def test_a_pade_run_says_whose_loop_its_radius_is(tmp_path):
+    """The radius and penalty are the buffer's (linear interpolation) whatever the delay
+    simulated; tuned.json said nothing of it, though a Pade order 1 loop at k = 150, tau = 5 ms
+    decays where the buffer's grows."""
+    state = tune(TuneConfig(controller="dfs", delay="pade", pade_order=2, steps=1, **SHARED), tmp_path, progress=False)
+    assert summarize(state)["stability"]["note"].endswith("; " + DELAY_NOTE["pade"])
+    assert "Pade filter simulated" in DELAY_NOTE["pade"] and set(DELAY_NOTE) == set(DELAYS) - {"linear"}

@@ -42,6 +42,14 @@ from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_contro
 CHECKPOINT = "checkpoint.npz"
 
 
+# What tuned.json's stability note adds where the loop simulated is not the buffer's whose
+# radius it reports (a Pade order 1 loop at k = 150, tau = 5 ms decays where that buffer's grows).
+DELAY_NOTE = {
+    "cubic": "the radius and the penalty are those of the buffer read by linear interpolation, the loop simulated (cubic) at whole samples of delay only",
+    "pade": "the radius and the penalty are those of the loop with the delay itself (a buffer), not of the Pade filter simulated, whose stability can differ at a low pade_order",
+}
+
+
 @dataclasses.dataclass(frozen=True)
 class TuneConfig:
     """Everything that defines a tuning run (the checkpoint refuses to resume another one).
@@ -61,8 +69,9 @@ class TuneConfig:
       method: "rk4" or "zoh".
       capacity: delay buffer capacity in samples; tau is tuned in [dt, capacity dt].
       delay: how DFS reads theta(t - tau): "linear" or "cubic" buffer interpolation, or
-        "pade" states (tuning.transforms.DELAYS). The stability penalty always uses the
-        linear-interpolation loop matrix (exact for "linear", an approximation otherwise).
+        "pade" states (tuning.transforms.DELAYS). The stability penalty and the reported
+        radius always use the loop matrix of the linear-interpolation buffer: the exact delay
+        at whole samples, not the loop simulated with "pade" (``DELAY_NOTE``).
       pade_order: Pade order with delay = "pade" (>= 1).
       fuzzy_temperature: smoothing temperature of the fuzzy controller (0 = faithful).
       initial: starting physical parameters by name (k, tau_s, k1, k2, k3); missing names
@@ -573,7 +582,8 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
             "decay_rate_per_s": -log_rho / problem.dt,
             "stable": log_rho < 0,
             "note": "sampled DFS loop on the nominal plant with its delay states; the structural z = 1 (no position action) is excluded"
-            + ("; the fuzzy part of dfs+fuzzy is not included (nonlinear)" if problem.config.controller == "dfs+fuzzy" else ""),
+            + ("; the fuzzy part of dfs+fuzzy is not included (nonlinear)" if problem.config.controller == "dfs+fuzzy" else "")
+            + (f"; {DELAY_NOTE[problem.config.delay]}" if problem.config.delay != "linear" else ""),
         }
     return out
 
