@@ -244,14 +244,17 @@ def _chunk_path(out_dir: str, index: int) -> str:
 
 
 def _statistics(values: np.ndarray, percentiles: Sequence[float]) -> dict[str, Any]:
-    finite = values[np.isfinite(values)]
+    """Count, mean, std, min, max and percentiles of the finite ``values``, computed in float64
+    and given with the digits of the values' own dtype (a float32 run's settling time of
+    0.312 s was 0.31200000643730164)."""
+    finite = values[np.isfinite(values)].astype(np.float64)
     stats: dict[str, Any] = {"count": int(finite.size), "nonfinite": int(values.size - finite.size)}
     if finite.size == 0:
         return {**stats, "mean": None, "std": None, "min": None, "max": None, **{f"p{p:g}": None for p in percentiles}}
-    stats.update(mean=float(finite.mean()), std=float(finite.std()), min=float(finite.min()), max=float(finite.max()))
-    for p, v in zip(percentiles, np.percentile(finite, list(percentiles))):
-        stats[f"p{p:g}"] = float(v)
-    return stats
+    found = {"mean": finite.mean(), "std": finite.std(), "min": finite.min(), "max": finite.max()}
+    found.update({f"p{p:g}": v for p, v in zip(percentiles, np.percentile(finite, list(percentiles)))})
+    dtype = values.dtype if values.dtype.kind == "f" else np.float64
+    return {**stats, **{name: fileio.shortest(np.asarray(v, dtype)) for name, v in found.items()}}
 
 
 def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -270,7 +273,7 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
         "controller": config.controller,
         "params": {name: value for name, value in param_values(config.params).items() if name in PARAMETERS[config.controller]},
         "controller_options": {name: getattr(config, name) for name in CONFIG_OPTIONS},
-        "metrics": {name: _statistics(columns[name][ok].astype(np.float64), config.percentiles) for name in names},
+        "metrics": {name: _statistics(columns[name][ok], config.percentiles) for name in names},
         "metric_definitions": names,
         "percentiles": list(config.percentiles),
         "scenarios": dataclasses.asdict(config.scenarios),

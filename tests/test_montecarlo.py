@@ -479,6 +479,12 @@ def test_statistics_leave_out_diverged_and_nonfinite_runs():
     assert (tip["count"], tip["nonfinite"], tip["mean"], tip["max"], tip["p50"]) == (2, 0, 2.0, 3.0, 2.0)
     settling = summary["metrics"]["settling_time_s"]
     assert (settling["count"], settling["nonfinite"], settling["mean"]) == (1, 1, 0.5)
+    # a float32 run's statistics, computed in float64, are given with float32's digits: its
+    # settling time of 0.312 s was 0.31200000643730164
+    columns = {name: np.asarray(column, np.float32 if name != "diverged" else bool) for name, column in columns.items()}
+    columns["settling_time_s"] = np.asarray([0.312, 0.2, 0.318], np.float32)
+    settling = montecarlo.summarize(config, columns)["metrics"]["settling_time_s"]
+    assert (settling["min"], settling["max"], settling["mean"], settling["p50"]) == (0.312, 0.318, 0.315, 0.315)
 
 
 def test_statistics_at_the_ends_and_with_every_run_diverged():
