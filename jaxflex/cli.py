@@ -632,6 +632,12 @@ def _calibrate(args: argparse.Namespace) -> int:
         n_d, n_f = result.measured_damping.size, result.after_damping.size  # n_d <= n_f: damping need not be measured in every mode
         measured_in = "" if n_d == n_f else f" in {_first_modes(n_d)}"
         print(f"damping ratio{'s' if n_f > 1 else ''}: measured {measured}{measured_in}; model {shown} in {_first_modes(n_f)}")
+        missed = 100 * abs(result.after_damping[:n_d] / result.measured_damping - 1)
+        if missed.max() > CALIBRATION_MISFIT_PERCENT:  # 0.01, 0.85 became 0.28, 0.75 with no word
+            worst = int(missed.argmax())
+            print(f"note: the model misses the damping ratio of mode {worst + 1} by {missed[worst]:.3g} % (over {CALIBRATION_MISFIT_PERCENT:g} %): Rayleigh damping, "
+                  "alpha / (2 omega) + beta omega / 2 with alpha, beta >= 0, cannot give these ratios; check them (a ratio of 0.01 is 1 %; a heavily "
+                  "damped mode found in a record may be noise or an aliased mode)", file=sys.stderr)
     loose = [name for name, sensitivity in zip(result.fit, result.sensitivity) if sensitivity > 10]
     if loose:
         print(f"note: the measured frequencies determine {', '.join(loose)} poorly (over 10 % per 1 % error in them): fit fewer fields, or measure more modes", file=sys.stderr)
