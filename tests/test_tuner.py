@@ -7,6 +7,7 @@ import os
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -646,7 +647,7 @@ def test_tuned_json_is_there_only_for_a_finished_run(tmp_path, monkeypatch):
 
     def draw(state, out_dir, paper_objective):  # the figures themselves: tested elsewhere
         for name in figures:
-            (tmp_path / name).write_text(f"after {state['step']} steps")
+            (Path(out_dir) / name).write_text(f"after {state['step']} steps")
         return figures
 
     monkeypatch.setattr(tuning.run, "_figures", draw)
@@ -669,6 +670,18 @@ def test_tuned_json_is_there_only_for_a_finished_run(tmp_path, monkeypatch):
     assert not (tmp_path / "tuned.json").exists()
     assert not any((tmp_path / name).exists() for name in figures)
     assert all((tmp_path / name).read_text() == "the user's" for name in theirs)
+
+    # stopped while drawing, after the updates: the figures drawn so far stayed, with no
+    # tuned.json beside them; now they are staged and moved in with it, or not at all
+    def draw_and_stop(state, out_dir, paper_objective):
+        (Path(out_dir) / "loss.png").write_text("drawn")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tuning.run, "_figures", draw_and_stop)
+    with pytest.raises(KeyboardInterrupt):
+        run_tune(dataclasses.replace(config, steps=4), tmp_path, resume=True, progress=False)
+    assert json.loads(np.load(tmp_path / CHECKPOINT)["meta"].tobytes())["step"] == 4  # the updates were done
+    assert sorted(p.name for p in tmp_path.iterdir() if p.suffix in (".png", ".json") or p.name.startswith(".tmp-")) == sorted(theirs)
 
 
 @pytest.mark.parametrize("meta", [b"", b"not a zip file", json.dumps({"step": 3}).encode(), json.dumps([1, 2]).encode()])

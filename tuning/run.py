@@ -62,13 +62,13 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
 
 
 def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, on_step: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """Tune, then write ``tuned.json`` (atomically, last), ``history.csv`` and figures into ``out_dir``.
+    """Tune, then write ``tuned.json`` (last), ``history.csv`` and figures into ``out_dir``.
 
     ``tuned.json`` is there only when the run has finished: a run removes the folder's
     previous one and its figures (``FIGURES``) first (once the folder and any checkpoint have
-    been checked), and its end writes them anew."""
+    been checked), and its end writes them anew, staged and moved in together, so that a run
+    stopped while drawing leaves no figure (it left those drawn so far, with no tuned.json)."""
     out_dir = os.fspath(out_dir)
-    result = os.path.join(out_dir, "tuned.json")
 
     def discard_previous_result() -> None:
         # A resumed run's tuned.json and figures are rewritten at its end; until then the
@@ -82,6 +82,7 @@ def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = F
         if progress:
             print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)
         summary = summarize(state)
-        summary["figures"] = _figures(state, out_dir, summary["objective"]["train"]["paper"])
-        fileio.write_json(result, summary)
+        with fileio.replace_outputs(out_dir, (*FIGURES, "tuned.json"), last="tuned.json") as stage:
+            summary["figures"] = _figures(state, stage, summary["objective"]["train"]["paper"])
+            fileio.write_json(os.path.join(stage, "tuned.json"), summary)
     return summary
