@@ -513,7 +513,10 @@ def test_bad_input_is_refused(tmp_path):
     # a sample time the paper's 5 ms delay does not fit: the message says why the paper's gains matter
     coarse = dict(SHARED, scenarios=ScenarioSpec(horizon_s=0.4, dt=0.01))
     with pytest.raises(ValueError, match=r"the paper's gains, which set the objective's scales, cannot be run with dt = 0.01 s"):
-        Problem(TuneConfig(controller="dfs", initial={"tau_s": 0.05}, **coarse))
+        TuneConfig(controller="dfs", initial={"tau_s": 0.05}, **coarse)
+    # so without an initial tau_s too: that was refused as the initial one, which the user had not given
+    with pytest.raises(ValueError, match=r"^the paper's gains, which set the objective's scales, cannot be run with dt = 0.01 s and capacity = 32: tau_s must be in \[0.01, 0.32\] s"):
+        TuneConfig(controller="dfs", **coarse)
     # an arm on which the paper's gains diverge (hub inertia / 33: sampled radius 1.13) over 8 s:
     # said at the start, not as a NaN objective blamed on the learning rate
     light_hub = jf.BeamParams(hub_inertia_kg_m2=jf.BeamParams().hub_inertia_kg_m2 * 0.03)

@@ -131,6 +131,10 @@ class TuneConfig:
         check_plants(self.scenarios, self.beam, self.n_modes, self.method)  # refuses an arm not finite in the dtype of the run, or RK4 growing one
         # Out-of-range starting values are refused here, not when tune() has made its folder.
         tc = tuned_controller(self.controller, self.scenarios.dt, self.capacity, self.delay, self.pade_order, self.fuzzy_temperature)
+        try:  # first: at dt = 10 ms the paper's 5 ms delay was refused as "initial", which the user had not given
+            tc.to_raw(tc.paper)
+        except ValueError as err:  # the objective's scales are those of the paper's gains
+            raise ValueError(f"the paper's gains, which set the objective's scales, cannot be run with dt = {self.scenarios.dt:g} s and capacity = {self.capacity}: {err}") from None
         try:
             tc.to_raw(tc.from_named(dict(self.initial)))
         except ValueError as err:
@@ -192,11 +196,8 @@ class Problem:
         self.train = self._place(sample_scenarios(spec, key_train, config.n_scenarios, config.n_modes))
         self.heldout = self._place(sample_scenarios(dataclasses.replace(spec, include_paper=False), key_val, config.n_heldout, config.n_modes))
         self.nominal = discretize(make_plant(self.beam, config.n_modes), spec.dt, config.method)
-        self.initial_raw = self.tc.to_raw(self.tc.from_named(dict(config.initial)))  # in range: TuneConfig checked it
-        try:
-            self.paper_raw = self.tc.to_raw(self.tc.paper)
-        except ValueError as err:  # the objective's scales are those of the paper's gains
-            raise ValueError(f"the paper's gains, which set the objective's scales, cannot be run with dt = {self.dt:g} s and capacity = {config.capacity}: {err}") from None
+        self.initial_raw = self.tc.to_raw(self.tc.from_named(dict(config.initial)))  # in range: TuneConfig checked both
+        self.paper_raw = self.tc.to_raw(self.tc.paper)
         inner = optax.adam(config.learning_rate) if optimizer is None else optimizer
         self.optimizer = optax.chain(optax.clip_by_global_norm(config.clip_norm), inner)
         self.scales = jax.jit(self._terms)(self.paper_raw, self.train)
