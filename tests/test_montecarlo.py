@@ -644,9 +644,14 @@ def test_resume_says_so_and_its_bar_starts_at_the_stored_chunks(tmp_path, monkey
         if index == 2:
             raise KeyboardInterrupt
 
-    with pytest.raises(KeyboardInterrupt):
+    clock = iter(range(0, 1000, 20))  # each reading 20 s after the last: a line every other chunk
+    with monkeypatch.context() as patch, pytest.raises(KeyboardInterrupt):
+        patch.setattr(montecarlo.time, "monotonic", lambda: next(clock))
         run_montecarlo(config, tmp_path, progress=False, figures=False, on_chunk=interrupt)
-    capsys.readouterr()
+    # without the bar it says that it compiles, and a line every 30 s (the bar sat at 0 through
+    # the compile, and without it the run said nothing until its end)
+    assert capsys.readouterr().err == ("montecarlo: 45 scenarios in 5 chunk(s) of 10 on 1 device(s), compiling\n"
+                                       "montecarlo: 20 of 45 scenarios (44 %) after 40 s, about 50 s left\n")
     summary = run_montecarlo(config, tmp_path, resume=True, progress=True, figures=False)
     err = capsys.readouterr().err
     assert f"montecarlo: resuming: 3 of 5 chunks already in {tmp_path / 'chunks'}" in err
@@ -657,7 +662,7 @@ def test_resume_says_so_and_its_bar_starts_at_the_stored_chunks(tmp_path, monkey
     assert summary["n_scenarios"] == 45 and summary["metrics"]["tip_ise"]["max"] == 5.0
     # without the bar (--no-progress) it still says so: it said nothing there
     summary = run_montecarlo(config, tmp_path, resume=True, progress=False, figures=False)
-    assert f"montecarlo: resuming: 5 of 5 chunks already in {tmp_path / 'chunks'}" in capsys.readouterr().err
+    assert capsys.readouterr().err == f"montecarlo: resuming: 5 of 5 chunks already in {tmp_path / 'chunks'}\n"  # nothing to compile
 
 
 def test_tip_bands_are_over_the_first_scenarios_of_chunk_0():

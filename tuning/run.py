@@ -79,8 +79,7 @@ def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = F
 
     with fileio.run_lock(out_dir, "out_dir (--out)"):  # tune's, held on to the figures and tuned.json
         state = tune(config, out_dir, resume=resume, progress=progress, on_step=on_step, on_start=discard_previous_result)
-        if progress:
-            print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)
+        print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)  # with or without the bar
         summary = summarize(state)
         with fileio.replace_outputs(out_dir, (*FIGURES, "tuned.json"), last="tuned.json") as stage:
             summary["figures"] = _figures(state, stage, summary["objective"]["train"]["paper"])
