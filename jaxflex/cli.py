@@ -14,7 +14,7 @@ import time
 from typing import Any, Sequence
 
 from jaxflex import checks, fileio
-from jaxflex.beam import HUBS
+from jaxflex.beam import HUBS, MAX_MODES
 from jaxflex.controllers.registry import NAMES
 
 
@@ -25,6 +25,15 @@ def _positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {value}")
+    return value
+
+
+def _modes(text: str) -> int:
+    """``--modes``: refused here beyond ``MAX_MODES``, by its option (the core's message named
+    ``n_modes``, which was not typed)."""
+    value = _positive_int(text)
+    if value > MAX_MODES:
+        raise argparse.ArgumentTypeError(f"expected an integer from 1 to {MAX_MODES}; got {value}")
     return value
 
 
@@ -115,7 +124,7 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     rep = sub.add_parser("reproduce", help="reproduce the paper: three runs, figures, report.md, results.json")
     rep.add_argument("--out", default="results", help="output folder (default: ./results)")
-    rep.add_argument("--modes", type=_positive_int, default=2, help="number of assumed modes, >= 1 (default: 2, as the paper)")
+    rep.add_argument("--modes", type=_modes, default=2, help="number of assumed modes, >= 1 (default: 2, as the paper)")
     rep.add_argument("--x64", action="store_true", help="simulate in float64 (default float32)")
     rep.add_argument("--params", default=None, help="tuned.json from `jaxflex tune`: show its gains beside the paper's")
 
@@ -136,7 +145,7 @@ def _parser() -> argparse.ArgumentParser:
     stab = sub.add_parser("stability", help="DFS stability: critical delays, rightmost root, sampled-loop spectral radius, (k, tau) chart")
     stab.add_argument("--k", type=float, default=55.0, help="DFS gain (N*m/rad; default 55, the paper's)")
     stab.add_argument("--tau", type=float, default=None, help="DFS delay (s), a whole number of samples of dt (default 0.005, the paper's)")
-    stab.add_argument("--modes", type=_positive_int, default=None, help="number of assumed modes (default: the config's n_modes, else 2)")
+    stab.add_argument("--modes", type=_modes, default=None, help="number of assumed modes (default: the config's n_modes, else 2)")
     stab.add_argument("--dt", type=float, default=None, help="sample time of the sampled loop (s; default: the config's [scenarios] dt, else 0.001)")
     stab.add_argument("--tau-max", type=float, default=None, help="largest delay of the (k, tau) chart (s), from --tau to 160 samples of dt (default: the largest of 8 tau, 40 ms and 20 samples, at most 160 samples)")
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
@@ -153,7 +162,7 @@ def _parser() -> argparse.ArgumentParser:
     cal.add_argument("--damping", type=float, nargs="+", default=None, metavar="RATIO", help="measured damping ratios of modes 1, 2, ... (each in (0, 1); at most one per frequency); with --record they come from the record")
     cal.add_argument("--fit", nargs="+", default=None, metavar="FIELD", help="[beam] fields to fit, at most one per frequency (default: youngs_modulus_pa and, with the hub free and two or more frequencies, hub_inertia_kg_m2)")
     cal.add_argument("--hub", choices=HUBS, default="free", help="how the arm was held when measured: free (motor unpowered; default) or clamped (hub held still)")
-    cal.add_argument("--modes", type=_positive_int, default=None, help="assumed modes of the model (default: the config's n_modes, else max(2, number of frequencies))")
+    cal.add_argument("--modes", type=_modes, default=None, help="assumed modes of the model (default: the config's n_modes, else max(2, number of frequencies))")
     cal.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the starting arm (default the paper's), its n_modes the default of --modes")
     cal.add_argument("--out", default="calibration", help="output folder (default ./calibration)")
 
@@ -681,6 +690,8 @@ def _identify(args: argparse.Namespace) -> tuple[Any, tuple[Any, Any, list[str]]
     except ValueError as err:
         # the core's names of the options, the options' names here
         message = re.sub(r"\b(n_modes|start_s|end_s)\b", lambda m: {"n_modes": "--record-modes", "start_s": "--start", "end_s": "--end"}[m[1]], str(err))
+        # and its channels by their columns' names (it said "channel(s) [3] of y")
+        message = re.sub(r"channel\(s\) \[([\d, ]+)\] of y", lambda m: "channel(s) " + ", ".join(repr(names[int(i) - 1]) for i in m[1].split(",")), message)
         raise ValueError(message if message.startswith("--") else f"--record {args.record}: {message}") from None
     print(f"{args.record}: {len(names)} channel(s), {modes.end_s - modes.start_s:.6g} s from {modes.start_s:.10g} s at dt = {modes.dt:g} s; "
           f"the model of {modes.order} poles leaves {100 * modes.residual:.3g} % of its modes' RMS")
@@ -713,10 +724,11 @@ def _stability(args: argparse.Namespace) -> int:
     scenarios = ScenarioSpec.from_mapping(values.get("scenarios", {}))
     n_modes = args.modes if args.modes is not None else config_modes or 2
     dt = args.dt if args.dt is not None else scenarios.dt
-    print(_model_line(arm, n_modes, dt), file=sys.stderr)
     # tau comes from --tau or its default here (never from --config): a refusal names the option
     typed = {"k": "--k", "tau_s": "--tau" if args.tau is not None else "--tau (default 0.005 s)", "tau_max_s": "--tau-max" if args.tau_max is not None else None,
              "dt": "--dt" if args.dt is not None else None, "n_modes": "--modes" if args.modes is not None else None}
+    with _as_typed(typed):  # --dt 0 was refused as "dt"
+        print(_model_line(arm, n_modes, dt), file=sys.stderr)
     if args.tau is None:
         args.tau = 0.005
         try:

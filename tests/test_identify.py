@@ -296,6 +296,14 @@ def test_cli_notes_a_record_the_modes_do_not_explain_and_one_sampled_too_fast(tm
     assert "sampled so fast" in capsys.readouterr().err
 
 
+def test_cli_names_a_constant_channel_by_its_column(tmp_path, capsys):
+    """It said "channel(s) [2, 3] of y", which the file's header names otherwise."""
+    tt = np.arange(2000) * DT
+    _write_record(tmp_path / "r.csv", tt, np.c_[np.exp(-tt) * np.sin(2 * np.pi * 13 * tt), 0 * tt, 1 + 0 * tt], "t,tip,zero,one")
+    assert cli.main(["calibrate", "--record", str(tmp_path / "r.csv"), "--out", str(tmp_path / "a")]) == 2
+    assert capsys.readouterr().err.endswith(f"error: --record {tmp_path / 'r.csv'}: channel(s) 'zero', 'one' are constant or a straight line throughout the window\n")
+
+
 def test_cli_notes_a_window_too_short_for_mode_1_as_short_not_as_sampled_too_fast(tmp_path, capsys):
     tt = np.arange(3000) * DT
     _write_record(tmp_path / "r.csv", tt, np.exp(-0.1 * tt) * np.sin(2 * np.pi * 12 * tt), "t,a")

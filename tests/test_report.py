@@ -503,6 +503,7 @@ def test_a_refused_option_is_named_as_typed(tmp_path, capsys):
         (["stability", "--k", "nan"], "jaxflex stability: error: --k must be finite; got nan"),
         (["stability", "--tau", "0.0055"], "jaxflex stability: error: --tau must be a whole number >= 1 of samples of dt = 0.001 s; got 0.0055 s (5.5 samples)"),
         (["stability", "--tau-max", "0.002"], "jaxflex stability: error: --tau-max must be at least the delay analysed, tau_s = 0.005 s, so that the chart holds that point; got 0.002 s"),
+        (["stability", "--dt", "0"], "jaxflex stability: error: --dt must be a finite scalar > 0 (seconds); got 0.0"),  # it said "dt"
     ]
     for argv, said in cases:
         assert cli.main([*argv, "--out", str(tmp_path / "o")]) == 2
@@ -520,6 +521,11 @@ def test_a_refused_option_is_named_as_typed(tmp_path, capsys):
         assert cli.main(["stability", "--config", str(config), *argv, "--out", str(tmp_path / "o")]) == 2
         assert capsys.readouterr().err.splitlines()[-1] == f"jaxflex stability: {said}"
     assert not (tmp_path / "o").exists()
+    # --modes beyond the model's 100 is refused as typed (it said "n_modes must be ...")
+    for argv in (["reproduce"], ["stability"], ["calibrate", "--freqs", "14"]):
+        with pytest.raises(SystemExit):
+            cli.main([*argv, "--modes", "101", "--out", str(tmp_path / "o")])
+        assert capsys.readouterr().err.endswith(f"jaxflex {argv[0]}: error: argument --modes: expected an integer from 1 to 100; got 101\n")
 
 
 def test_readme_quick_start_matches_ci():

@@ -476,7 +476,7 @@ def _tune_locked(
                     kept = f"the last checkpoint in {out_dir} is kept" if os.path.exists(ckpt_path) else f"no checkpoint was written yet (every {config.checkpoint_every} steps)"
                     if n == 0:  # no update has been taken: the learning rate is not the cause
                         raise ValueError(f"{what} at the starting parameters, before any update: check [initial], [objective] and [scenarios]; {kept}")
-                    raise ValueError(f"{what} at step {n + 1}: lower learning_rate or clip_norm, or check the scenarios; {kept}")
+                    raise ValueError(f"{what} at step {n + 1}: lower learning_rate (--lr) or clip_norm (a config key), or check the scenarios; {kept}")
                 if n == 0 and grad_norm == 0.0:  # no update could ever move them
                     spec = config.scenarios
                     raise ValueError(f"the objective's gradient is exactly zero at the starting parameters, so no update can move them: over the "
