@@ -148,6 +148,10 @@ def test_calibration_measured_marker_leaves_the_calibrated_dot_visible_and_error
     right = fig.axes[1]
     labels = [t.get_text() for t in right.texts]
     assert labels == [f"{100 * (13.32 / 13.31 - 1):+.2f}", f"{100 * (36.47 / 35.1 - 1):+.2f}", "+0.00", "+0.00"] == ["+0.08", "+3.90", "+0.00", "+0.00"]
+    # a fit a hair under the measurement (-2e-14 %) is labelled +0.00, as the CLI prints it, not -0.00
+    fig = plotting.calibration(np.array([13.31, 35.1]), np.array([13.32, 36.47]), np.array([13.31, np.nextafter(35.1, 0)]), "t")
+    fig.canvas.draw()
+    assert [t.get_text() for t in fig.axes[1].texts][2:] == ["+0.00", "+0.00"]
 
 
 def test_stability_chart_title_with_many_modes_stays_on_the_figure():
