@@ -21,6 +21,7 @@ import time
 import tomllib
 from typing import Any, Callable, Iterable, Iterator, Mapping
 
+import jax.numpy as jnp
 import numpy as np
 
 try:
@@ -191,15 +192,17 @@ def write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write(path, write)
 
 
-def to_jsonable(value: Any, *, finite: bool = True) -> Any:
+def to_jsonable(value: Any, *, finite: bool = True, exact: bool = False) -> Any:
     """NumPy/JAX scalars and arrays to plain JSON values; non-finite floats become None
-    (``finite=False``: kept, for files only Python reads back, as ``Infinity`` and ``NaN``)."""
+    (``finite=False``: kept, for files only Python reads back, as ``Infinity`` and ``NaN``).
+    A narrow float is written ``shortest``; ``exact=True`` widens it to float64 instead, for a
+    fingerprint, in which a float32 55.000008 and a float64 55.000008 must differ."""
     if isinstance(value, dict):
-        return {str(k): to_jsonable(v, finite=finite) for k, v in value.items()}
+        return {str(k): to_jsonable(v, finite=finite, exact=exact) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [to_jsonable(v, finite=finite) for v in value]
+        return [to_jsonable(v, finite=finite, exact=exact) for v in value]
     if hasattr(value, "tolist"):
-        return to_jsonable(shortest(value), finite=finite)
+        return to_jsonable(np.asarray(value).tolist() if exact else shortest(value), finite=finite)
     if isinstance(value, float) and finite:
         return value if math.isfinite(value) else None
     return value
@@ -207,13 +210,21 @@ def to_jsonable(value: Any, *, finite: bool = True) -> Any:
 
 def shortest(value: Any) -> Any:
     """A NumPy/JAX scalar or array as Python values (``tolist``), each float narrower than
-    float64 as the shortest decimal that reads back to it in its own dtype: a float32 55 + 1 ulp
-    is 55.000008, not the 55.00000762939453 of its float64 widening, so that a file shows the
-    digits the run computed and no more."""
+    float64 (float32, float16, bfloat16) as the shortest decimal that reads back to it in its
+    own dtype: a float32 55 + 2 ulp is 55.000008, not the 55.00000762939453 of its float64
+    widening, so that a file shows the digits the run computed and no more."""
     array = np.asarray(value)
-    if array.dtype.kind == "f" and array.dtype.itemsize < 8:
-        return np.array([float(str(x)) for x in array.ravel()]).reshape(array.shape).tolist()
-    return array.tolist()
+    if not (jnp.issubdtype(array.dtype, jnp.floating) and jnp.finfo(array.dtype).bits < 64):  # bfloat16 too, whose kind is "V"
+        return array.tolist()
+    narrow = array.dtype.type
+
+    def digits(x: Any) -> float:  # the fewest significant digits that read back to x
+        if array.dtype.kind == "f":  # NumPy's own floats: its shortest round-trip form, whatever the print options
+            return float(np.format_float_scientific(x, unique=True))
+        x = float(x)
+        return x if not math.isfinite(x) else next(float(f"{x:.{p}g}") for p in range(1, 18) if narrow(float(f"{x:.{p}g}")) == narrow(x))
+
+    return np.array([digits(x) for x in array.ravel()]).reshape(array.shape).tolist()
 
 
 def digest(fields: Mapping[str, Any]) -> str:

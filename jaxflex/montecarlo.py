@@ -158,7 +158,7 @@ class MCConfig:
             d.pop(name)
         d["dtype"] = str(jnp.zeros(()).dtype)
         d["program"] = fileio.program()
-        return json.loads(json.dumps(fileio.to_jsonable(d)))
+        return json.loads(json.dumps(fileio.to_jsonable(d, exact=True)))
 
     def fingerprint(self) -> str:
         """Hash of ``fingerprint_fields``."""

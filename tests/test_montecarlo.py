@@ -597,6 +597,8 @@ def test_the_dtype_is_part_of_a_runs_fingerprint():
     with jax.enable_x64(True):
         f64 = config.fingerprint_fields(), config.fingerprint()
     assert (f32[0]["dtype"], f64[0]["dtype"]) == ("float32", "float64") and f32[1] != f64[1]
+    # and a gain given as a float32 is not the float64 number it prints as (55.000008 in files)
+    assert MCConfig(params={"k": np.float32(55.000008)}).fingerprint() != MCConfig(params={"k": 55.000008}).fingerprint()
 
 
 def test_a_config_of_the_wrong_kind_is_refused(tmp_path):

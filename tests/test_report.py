@@ -439,6 +439,11 @@ def test_files_show_a_narrow_float_with_its_own_digits():
     assert out == {"k": 55.000008, "c": [[0.1, None]], "d": float(np.float64(0.1) + 1e-17 * 3), "n": [0, 1]}
     assert np.float32(out["k"]) == above_55 and float(above_55) == 55.00000762939453
     assert json.loads(json.dumps(out))["c"] == [[0.1, None]]
+    # float16 and bfloat16 too (bfloat16's 0.1 widened is 0.10009765625)
+    assert fileio.shortest(jnp.asarray([0.1, -0.0, np.nan], jnp.bfloat16))[:2] == [0.1, -0.0] and fileio.shortest(np.float16(0.1)) == 0.1
+    # a fingerprint keeps them apart: a float32 gain and the float64 number it prints as differ
+    wide, narrow = (fileio.to_jsonable({"k": k}, exact=True) for k in (55.000008, np.float32(55.000008)))
+    assert wide == {"k": 55.000008} and narrow == {"k": 55.00000762939453}
 
 
 def test_program_changes_with_the_source_of_either_package(tmp_path, monkeypatch):

@@ -156,7 +156,7 @@ class TuneConfig:
         d.pop("checkpoint_every")
         d["dtype"] = str(jnp.zeros(()).dtype)
         d["program"] = fileio.program()
-        return json.loads(json.dumps(fileio.to_jsonable(d)))
+        return json.loads(json.dumps(fileio.to_jsonable(d, exact=True)))
 
     def fingerprint(self) -> str:
         """Hash of ``fingerprint_fields``."""
