@@ -324,8 +324,9 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
       key: a JAX PRNG key (``jax.random.key(seed)``).
       n: number of scenarios (Python int >= 1).
       n_modes: number of assumed modes of the plant (sets the state size).
-      dtype: floating dtype (default: JAX's default float). The random numbers are drawn in
-        float32 and cast, so that a key gives the same scenarios, to rounding, in any dtype.
+      dtype: floating dtype (default: JAX's default float). The scenarios are drawn in
+        float32 and cast, so that a key gives the same ones in any dtype (the paper's member
+        set in ``dtype``).
 
     Raises:
       ValueError: naming ``spec`` when it is not a ScenarioSpec, ``key`` when it is not a PRNG
@@ -343,18 +344,20 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
     steps, dt = spec.steps, spec.dt
     n_q = n_modes + 1
     keys = jax.random.split(key, 10)
-    # Drawn in float32 whatever the dtype: JAX's float64 draws from a key are other numbers
-    # than its float32 ones, so a seed gave another batch under --x64 (its Monte Carlo peak tip
-    # deflection 8 % off the float32 run's, which was sampling, not precision).
-    normal = lambda k, shape: jax.random.normal(k, shape, jnp.float32).astype(dtype)
-    uniform = lambda k, shape, lo=-1.0, hi=1.0: jax.random.uniform(k, shape, jnp.float32, lo, hi).astype(dtype)
+    # Drawn and built in float32 whatever the dtype, then cast: JAX's float64 draws from a key
+    # are other numbers than its float32 ones, so a seed gave another batch under --x64 (its
+    # Monte Carlo peak tip deflection 8 % off the float32 run's, which was sampling, not
+    # precision), and a pulse's start compared in each dtype could move by a sample.
+    f32 = jnp.float32
+    normal = lambda k, shape: jax.random.normal(k, shape, f32)
+    uniform = lambda k, shape, lo=-1.0, hi=1.0: jax.random.uniform(k, shape, f32, lo, hi)
 
-    x0 = jnp.zeros((n, 2 * n_q), dtype)
+    x0 = jnp.zeros((n, 2 * n_q), f32)
     x0 = x0.at[:, 0].set(spec.theta0_std_rad * normal(keys[0], (n,)))
     x0 = x0.at[:, 1:n_q].set(spec.q0_std_m * normal(keys[1], (n, n_modes)))
     x0 = x0.at[:, n_q + 1 :].set(spec.qdot0_std_m_s * normal(keys[2], (n, n_modes)))
 
-    t = jnp.arange(steps, dtype=dtype) * dt
+    t = jnp.arange(steps, dtype=f32) * dt
     half = 0.5 * spec.horizon_s
     pulse_start = uniform(keys[3], (n, 1), 0.0, half)
     pulse = spec.impulse_max_n * uniform(keys[4], (n, 1)) * ((t[None, :] >= pulse_start) & (t[None, :] < pulse_start + spec.impulse_duration_s))
@@ -362,7 +365,7 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
     step = spec.step_max_n * uniform(keys[6], (n, 1)) * (t[None, :] >= step_start)
     force = (pulse + step)[:, :, None]
 
-    noise_std = jnp.asarray([spec.noise_angle_rad, spec.noise_velocity_rad_s], dtype)
+    noise_std = jnp.asarray([spec.noise_angle_rad, spec.noise_velocity_rad_s], f32)
     noise = normal(keys[7], (n, steps, 2)) * noise_std[None, None, :]
 
     plant = None
@@ -374,6 +377,8 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
             1 + spec.hub_inertia_rel * u[:, 2],
             uniform(keys[9], (n,), 0.0, 1.0) * spec.payload_max_kg,
         )
+        plant = PlantPerturbation(*(leaf.astype(dtype) for leaf in plant))
+    x0, force, noise = (a.astype(dtype) for a in (x0, force, noise))
     if spec.include_paper:
         x0 = x0.at[0].set(jnp.asarray(_paper_x0(n_modes), dtype))
         force = force.at[0].set(0.0)

@@ -365,13 +365,12 @@ def test_paper_scenario_refuses_a_dt_near_the_sampled_plants(dt):
 def test_a_key_draws_the_same_scenarios_in_float32_and_float64():
     """JAX's float64 draws from a key are other numbers than its float32 ones: `--x64` ran
     another batch from the same seed (a Monte Carlo's peak tip deflection moved 8 %, which
-    read as float32's error). Now the batches agree to float32 rounding."""
+    read as float32's error). Now the float64 batch, cast to float32, is the float32 one: a
+    pulse's start compared in each dtype also moved by a sample in 2 of 10,000 scenarios."""
     spec = dataclasses.replace(SPEC, include_paper=True)
     wide = draw(spec)
     with jax.enable_x64(False):
         narrow = jax.tree.map(np.asarray, sample_scenarios(spec, jax.random.key(1), N, n_modes=2, dtype=jnp.float32))
     for a, b in zip(jax.tree.leaves(narrow), jax.tree.leaves(wide)):
         assert a.dtype == np.float32 and b.dtype == np.float64
-        # each product (and the force's sum of pulse and step) rounded once or twice in float32;
-        # a pulse or step starting a sample apart would be off by its whole amplitude
-        np.testing.assert_allclose(a, b, rtol=0, atol=2 * np.finfo(np.float32).eps * np.abs(b).max())
+        np.testing.assert_array_equal(a, b.astype(np.float32))
