@@ -124,7 +124,7 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     rep = sub.add_parser("reproduce", help="reproduce the paper: three runs, figures, report.md, results.json")
     rep.add_argument("--out", default="results", help="output folder (default: ./results)")
-    rep.add_argument("--modes", type=_modes, default=2, help="number of assumed modes, >= 1 (default: 2, as the paper)")
+    rep.add_argument("--modes", type=_modes, default=2, help="number of assumed modes, 1-100 (default: 2, as the paper)")
     rep.add_argument("--x64", action="store_true", help="simulate in float64 (default float32)")
     rep.add_argument("--params", default=None, help="tuned.json from `jaxflex tune`: show its gains beside the paper's")
 
@@ -145,7 +145,7 @@ def _parser() -> argparse.ArgumentParser:
     stab = sub.add_parser("stability", help="DFS stability: critical delays, rightmost root, sampled-loop spectral radius, (k, tau) chart")
     stab.add_argument("--k", type=float, default=55.0, help="DFS gain (N*m/rad; default 55, the paper's)")
     stab.add_argument("--tau", type=float, default=None, help="DFS delay (s), a whole number of samples of dt (default 0.005, the paper's)")
-    stab.add_argument("--modes", type=_modes, default=None, help="number of assumed modes (default: the config's n_modes, else 2)")
+    stab.add_argument("--modes", type=_modes, default=None, help="number of assumed modes, 1-100 (default: the config's n_modes, else 2)")
     stab.add_argument("--dt", type=float, default=None, help="sample time of the sampled loop (s; default: the config's [scenarios] dt, else 0.001)")
     stab.add_argument("--tau-max", type=float, default=None, help="largest delay of the (k, tau) chart (s), from --tau to 160 samples of dt (default: the largest of 8 tau, 40 ms and 20 samples, at most 160 samples)")
     stab.add_argument("--out", default="stability", help="output folder (default ./stability)")
@@ -162,7 +162,7 @@ def _parser() -> argparse.ArgumentParser:
     cal.add_argument("--damping", type=float, nargs="+", default=None, metavar="RATIO", help="measured damping ratios of modes 1, 2, ... (each in (0, 1); at most one per frequency); with --record they come from the record")
     cal.add_argument("--fit", nargs="+", default=None, metavar="FIELD", help="[beam] fields to fit, at most one per frequency (default: youngs_modulus_pa and, with the hub free and two or more frequencies, hub_inertia_kg_m2)")
     cal.add_argument("--hub", choices=HUBS, default="free", help="how the arm was held when measured: free (motor unpowered; default) or clamped (hub held still)")
-    cal.add_argument("--modes", type=_modes, default=None, help="assumed modes of the model (default: the config's n_modes, else max(2, number of frequencies))")
+    cal.add_argument("--modes", type=_modes, default=None, help="assumed modes of the model, 1-100 (default: the config's n_modes, else max(2, number of frequencies))")
     cal.add_argument("--config", default=None, help="TOML file (a tune or montecarlo config serves): its [beam] table is the starting arm (default the paper's), its n_modes the default of --modes")
     cal.add_argument("--out", default="calibration", help="output folder (default ./calibration)")
 
@@ -493,7 +493,7 @@ def _tune(args: argparse.Namespace) -> int:
     print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
     summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress, on_step=_raise_pending)
     obj = summary["objective"]
-    def gains(named: dict) -> str:  # 6 digits: float32 runs store 55 as 55.00000762939453
+    def gains(named: dict) -> str:  # 6 digits, as a line to read: tuned.json has the float32 run's 55.000008
         return ", ".join(f"{name} = {value:.6g}" for name, value in named.items())
 
     print(f"tuned {summary['controller']}: {gains(summary['params'])} (paper: {gains(summary['paper_params'])})")
@@ -641,7 +641,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         n_d, n_f = result.measured_damping.size, result.after_damping.size  # n_d <= n_f: damping need not be measured in every mode
         measured_in = "" if n_d == n_f else f" in {_first_modes(n_d)}"
         print(f"damping ratio{'s' if n_f > 1 else ''}: measured {measured}{measured_in}; model {shown} in {_first_modes(n_f)}")
-        missed = 100 * abs(result.after_damping[:n_d] / result.measured_damping - 1)
+        missed = abs(result.damping_error_percent)
         if missed.max() > CALIBRATION_MISFIT_PERCENT:  # 0.01, 0.85 became 0.28, 0.75 with no word
             worst = int(missed.argmax())
             print(f"note: the model misses the damping ratio of mode {worst + 1} by {missed[worst]:.3g} % (over {CALIBRATION_MISFIT_PERCENT:g} %): Rayleigh damping, "

@@ -21,7 +21,6 @@ import math
 import numbers
 import os
 import sys
-import time
 import zipfile
 from functools import partial
 from typing import Any, Callable, Sequence
@@ -37,6 +36,7 @@ from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
+from jaxflex.heartbeat import Heartbeat
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plant, check_plants, pad_batch, sample_scenarios
@@ -240,27 +240,6 @@ class _Runner:
         return {k: np.asarray(multihost_utils.process_allgather(v, tiled=True))[: self.chunk] for k, v in out.items()}
 
 
-class _Heartbeat:
-    """Progress without the bar (``--no-progress``, as under a scheduler, whose log a bar
-    fills): a line every ``every_s`` seconds of chunks run, and one for the last chunk."""
-
-    def __init__(self, total: int, done: int, every_s: float = 30.0):
-        self.total, self.done, self.every_s = total, done, every_s
-        self.start = self.last = time.monotonic()
-        self.first = done
-
-    def update(self, n: int) -> None:
-        self.done += n
-        now = time.monotonic()
-        if now - self.last < self.every_s and self.done < self.total:
-            return
-        self.last = now
-        elapsed = now - self.start
-        left = elapsed * (self.total - self.done) / (self.done - self.first)
-        print(f"montecarlo: {self.done} of {self.total} scenarios ({100 * self.done / self.total:.0f} %) after {elapsed:.0f} s"
-              + (f", about {left:.0f} s left" if self.done < self.total else ""), file=sys.stderr, flush=True)
-
-
 def _chunk_path(out_dir: str, index: int) -> str:
     return os.path.join(out_dir, "chunks", f"chunk_{index:06d}.npz")
 
@@ -353,7 +332,7 @@ def _run_locked(config: MCConfig, out_dir: str, resume: bool, progress: bool, fi
         print(f"montecarlo: resuming: {sum(stored)} of {n_chunks} chunks already in {chunks_dir}", file=sys.stderr, flush=True)
     if not all(stored):  # the bar sat at its start through the compile with no word of it
         print(f"montecarlo: {config.n_scenarios} scenarios in {n_chunks} chunk(s) of {runner.chunk} on {runner.n_devices} device(s), compiling", file=sys.stderr, flush=True)
-    heartbeat = None if progress else _Heartbeat(config.n_scenarios, sum(k for k, s in zip(keeps, stored) if s))
+    heartbeat = None if progress else Heartbeat("montecarlo", "scenarios", config.n_scenarios, sum(k for k, s in zip(keeps, stored) if s))
     if progress:
         from tqdm.auto import tqdm
 

@@ -103,7 +103,7 @@ def run(
         raise ValueError(
             f"the chart's delay range tau_max_s = {tau_max:g} s is {d_max} samples of dt = {dt:g} s; at most "
             f"{_MAX_CHART_SAMPLES} are supported: pass tau_max_s (jaxflex stability --tau-max) from tau_s to {limit:g} s, "
-            f"or leave it out (its default: the largest of 8 tau_s, 40 ms and 20 samples, at most {_MAX_CHART_SAMPLES})"
+            f"or leave it out (its default: the largest of 8 tau_s, 40 ms and 20 samples, at most {_MAX_CHART_SAMPLES} samples)"
         )
     n_tau = min(d_max, _MAX_N_TAU) if n_tau is None else min(checks.integer("n_tau", n_tau, 2), d_max)
     delay_grid = np.unique(np.round(np.linspace(1, d_max, n_tau)).astype(np.int64))

@@ -169,7 +169,7 @@ def test_toml_reads_back_as_a_config_with_the_measured_frequencies():
     assert "damping_ratio = 0.01  # not used: rayleigh_alpha and rayleigh_beta set the damping" in to_toml(result)
     one = to_toml(calibrate(measured, PAPER, ("youngs_modulus_pa",), damping=[0.02]))
     assert "not used" not in one and "rayleigh" not in one
-    assert "method" not in one and config.method == "rk4"  # the paper's integrator, which serves 3 modes at 1 ms
+    assert "method" not in one  # tune's default, the paper's RK4, serves 3 modes at 1 ms
     # 8 modes: one RK4 step of the default 1 ms grows mode 8 (516 Hz), which tune and montecarlo
     # refused ("method = 'rk4' with dt = 0.001 s is unstable for this arm"); the file says so
     # and asks for the exact zero-order hold
@@ -321,6 +321,8 @@ def test_as_dict_reports_the_start_the_errors_and_the_measured_damping():
     assert min(d["error_after_percent"]) < -0.1 and max(d["error_after_percent"]) > 0.1
     assert d["measured_damping"] == [0.03, 0.001] and d["measured_hz"] == measured.tolist()
     np.testing.assert_allclose(d["model_damping"], _plant_damping(result.beam, 2), rtol=1e-9)
+    np.testing.assert_allclose(d["damping_error_percent"], 100 * (_plant_damping(result.beam, 2) / [0.03, 0.001] - 1), rtol=1e-9)
+    assert max(np.abs(d["damping_error_percent"])) > 5  # beyond Rayleigh's reach, as the CLI's note says
 
 
 def test_a_fit_that_does_not_converge_is_refused(monkeypatch):

@@ -2,6 +2,7 @@
 resume equals an uninterrupted run, and refusal of impossible descriptions."""
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -16,6 +17,7 @@ import pytest
 import jaxflex as jf
 from jaxflex import beam, montecarlo, plotting
 from jaxflex.controllers import OpenLoopParams, open_loop
+from jaxflex.heartbeat import Heartbeat
 from jaxflex.beam import BeamParams
 from jaxflex.montecarlo import MCConfig, controller_and_params, run_montecarlo
 from jaxflex.plant import discretize, make_plant
@@ -648,7 +650,7 @@ def test_resume_says_so_and_its_bar_starts_at_the_stored_chunks(tmp_path, monkey
 
     clock = iter(range(0, 1000, 20))  # each reading 20 s after the last: a line every other chunk
     with monkeypatch.context() as patch, pytest.raises(KeyboardInterrupt):
-        patch.setattr(montecarlo.time, "monotonic", lambda: next(clock))
+        patch.setattr(montecarlo, "Heartbeat", functools.partial(Heartbeat, clock=lambda: next(clock)))
         run_montecarlo(config, tmp_path, progress=False, figures=False, on_chunk=interrupt)
     # without the bar it says that it compiles, and a line every 30 s (the bar sat at 0 through
     # the compile, and without it the run said nothing until its end)
@@ -665,6 +667,17 @@ def test_resume_says_so_and_its_bar_starts_at_the_stored_chunks(tmp_path, monkey
     # without the bar (--no-progress) it still says so: it said nothing there
     summary = run_montecarlo(config, tmp_path, resume=True, progress=False, figures=False)
     assert capsys.readouterr().err == f"montecarlo: resuming: 5 of 5 chunks already in {tmp_path / 'chunks'}\n"  # nothing to compile
+
+
+def test_heartbeat_says_the_end_and_leaves_the_compile_out_of_the_time_left(capsys):
+    clock = iter([0, 100, 110, 140, 150, 160])  # made; a first update that compiled for 100 s; then 10 s each
+    beat = Heartbeat("x", "steps", 5, clock=lambda: next(clock))
+    for _ in range(5):
+        beat.update(1, "; note")
+    # at 140 s the rate since the first update gives 40 s left (93 s with the compile in it)
+    assert capsys.readouterr().err == ("x: 1 of 5 steps (20 %) after 100 s; note\n"
+                                       "x: 3 of 5 steps (60 %) after 140 s, about 40 s left; note\n"
+                                       "x: 5 of 5 steps (100 %) after 160 s; note\n")
 
 
 def test_tip_bands_are_over_the_first_scenarios_of_chunk_0():

@@ -477,7 +477,7 @@ def test_an_interrupted_report_leaves_the_earlier_pair_of_files(tmp_path, monkey
 def test_report_refuses_a_chart_range_it_cannot_hold(tmp_path):
     """`jaxflex stability --tau 1` once ran out of memory after 40 s (8 s of delay samples per
     chart matrix); now it is refused at once, naming the range and the largest tau."""
-    with pytest.raises(ValueError, match=r"tau_max_s = 0.24 s is 240 samples of dt = 0.001 s; at most 160 are supported: pass tau_max_s \(jaxflex stability --tau-max\) from tau_s to 0.16 s, or leave it out \(its default: the largest of 8 tau_s, 40 ms and 20 samples, at most 160\)"):
+    with pytest.raises(ValueError, match=r"tau_max_s = 0.24 s is 240 samples of dt = 0.001 s; at most 160 are supported: pass tau_max_s \(jaxflex stability --tau-max\) from tau_s to 0.16 s, or leave it out \(its default: the largest of 8 tau_s, 40 ms and 20 samples, at most 160 samples\)"):
         stability_report.run(tmp_path, tau_s=0.03, tau_max_s=0.24)
     # a delay no range can hold (5 ms typed as 5) is refused as such: the range's message sent
     # it to --tau-max, whose own check then asked for a range up to 5 s

@@ -5,6 +5,7 @@ import dataclasses
 import math
 import os
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -590,6 +591,22 @@ def test_cli_tune_says_when_no_update_helped(monkeypatch, tmp_path, capsys, best
     assert (note in capsys.readouterr().err) == (best_step == 0)
 
 
+@pytest.mark.parametrize("delay", ["linear", "cubic", "pade"])
+def test_cli_tune_says_whose_loop_the_radius_is(monkeypatch, tmp_path, capsys, delay):
+    from jaxflex import cli
+    from tuning import run
+
+    objective = {"train": {"before": 1.0, "after": 0.9}, "heldout": {"before": 1.0, "after": 0.9}}
+    stability_ = {"spectral_radius": 0.99, "paper_spectral_radius": 0.99065454, "decay_rate_per_s": 10.0, "stable": True}
+    summary = {"controller": "dfs", "params": {"k": 60.0}, "paper_params": {"k": 55.0}, "objective": objective, "steps_run": 5, "best_step": 5, "stopped_early": False, "stability": stability_}
+    monkeypatch.setattr(run, "run_tune", lambda config, out, resume, progress, on_step: summary)
+    (tmp_path / "c.toml").write_text(f'delay = "{delay}"\n')
+    assert cli.main(["tune", "--config", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "sampled-loop spectral radius 0.99000000, stable (decay rate 10 1/s; paper gains 0.99065454)\n" in out
+    assert (f"note: {DELAY_NOTE[delay]}\n" in out) if delay != "linear" else "note:" not in out
+
+
 def test_cli_tune_with_toml_config(tmp_path, capsys):
     from jaxflex import cli
 
@@ -972,10 +989,11 @@ def test_reported_spectral_radius_is_float64_in_a_float32_run(tmp_path):
     assert st["spectral_radius"] == pytest.approx(top, rel=1e-6, abs=0)
 
 
-def test_a_pade_run_says_whose_loop_its_radius_is(tmp_path):
+def test_a_pade_run_says_whose_loop_its_radius_is(tmp_path, capsys):
     """The radius and penalty are the buffer's (linear interpolation) whatever the delay
     simulated; tuned.json said nothing of it, though a Pade order 1 loop at k = 150, tau = 5 ms
     decays where the buffer's grows."""
     state = tune(TuneConfig(controller="dfs", delay="pade", pade_order=2, steps=1, **SHARED), tmp_path, progress=False)
-    assert summarize(state)["stability"]["note"].endswith("; " + DELAY_NOTE["pade"])
-    assert "Pade filter simulated" in DELAY_NOTE["pade"] and set(DELAY_NOTE) == set(DELAYS) - {"linear"}
+    assert summarize(state)["stability"]["note"].endswith("; " + DELAY_NOTE["pade"]) and set(DELAY_NOTE) == set(DELAYS) - {"linear"}
+    # without the bar, a line for a log: every 30 s and at the last update (it said nothing)
+    assert re.search(r"\ntune: 1 of 1 updates \(100 %\) after \d+ s; loss [\d.]+, best held-out [\d.]+\n", capsys.readouterr().err)

@@ -32,6 +32,7 @@ from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
+from jaxflex.heartbeat import Heartbeat
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plant, check_plants, pad_batch, sample_scenarios
@@ -448,6 +449,7 @@ def _tune_locked(
     if not segments or segments[-1]["devices"] != devices:
         segments.append({"from_step": state["step"], "devices": devices})
     bar = None
+    heartbeat = None if progress else Heartbeat("tune", "updates", config.steps, state["step"])  # a line every 30 s for a log
     history = state["history"]
     carried = None
     if history and history[-1]["step"] == state["step"] < config.steps:
@@ -515,6 +517,8 @@ def _tune_locked(
                 bar.update(1)
             if bar is not None:
                 bar.set_postfix(loss=f"{loss:.4g}", best_val=f"{state['best_val']:.4g}")
+            if heartbeat is not None:
+                heartbeat.update(1, f"; loss {loss:.4g}, best held-out {state['best_val']:.4g}")
             if state["step"] % config.checkpoint_every == 0:
                 _save_checkpoint(ckpt_path, state)
                 fileio.write_text(os.path.join(out_dir, "history.csv"), _history_csv(history, names))
@@ -584,7 +588,7 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
             "stable": log_rho < 0,
             "note": "sampled DFS loop on the nominal plant with its delay states; the structural z = 1 (no position action) is excluded"
             + ("; the fuzzy part of dfs+fuzzy is not included (nonlinear)" if problem.config.controller == "dfs+fuzzy" else "")
-            + (f"; {DELAY_NOTE[problem.config.delay]}" if problem.config.delay != "linear" else ""),
+            + (f"; {DELAY_NOTE[problem.config.delay]}" if problem.config.delay in DELAY_NOTE else ""),
         }
     return out
 
