@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
-from jaxflex import beam, plotting, stability_report
+from jaxflex import beam, pade, plotting, stability_report
 from jaxflex.analysis import stability as st
 from jaxflex.controllers import DFSParams, dfs
 from jaxflex.plant import discretize, make_plant
@@ -199,6 +199,30 @@ def test_sampled_matrix_reproduces_the_rollout(plant, method, d):
     for _ in range(steps - 1):
         prop.append(mat @ prop[-1])
     np.testing.assert_allclose(np.asarray(prop), xi, rtol=0, atol=1e-10 * np.abs(xi).max())
+
+
+@pytest.mark.parametrize("order, hold", [(1, "foh"), (4, "zoh"), (8, "foh")])
+def test_pade_matrix_reproduces_the_rollout_and_deflates_the_structural_eigenvalue(plant, order, hold):
+    """The loop tune penalises and reports with delay = "pade" (it used the buffer's, a
+    different loop: at k = 150, tau = 5 ms the order-1 loop decays where the buffer's grows)."""
+    dplant = discretize(plant, 1e-3, "rk4")
+    x0 = jax.random.normal(jax.random.key(0), (6,)) * jnp.asarray([1e-2, 1e-3, 1e-4, 1e-1, 1e-2, 1e-3])
+    steps, k, tau = 300, 150.0, 0.0045
+    traj = rollout(dplant, dfs(1e-3, approximation="pade", pade_order=order, pade_hold=hold), DFSParams(k, tau), initial_condition(x0, steps))
+    mat = np.asarray(st.pade_loop_matrix(dplant, k, tau, order, hold))
+    state = np.concatenate([x0, np.asarray(pade.sampled_delay(tau, order, 1e-3, x0[:1], hold)[1])])  # the filter starts at theta_0's steady state
+    prop = [state]
+    for _ in range(steps - 1):
+        prop.append(mat @ prop[-1])
+    x = np.asarray(traj.x)
+    np.testing.assert_allclose(np.asarray(prop)[:, :6], x, rtol=0, atol=1e-10 * np.abs(x).max())
+    # the deflated spectrum is the full one without one eigenvalue 1 (a constant hub angle)
+    full, deflated = np.linalg.eigvals(mat), np.linalg.eigvals(np.asarray(st.deflated_pade_loop_matrix(dplant, k, tau, order, hold)))
+    rest = np.delete(full, np.argmin(np.abs(full - 1)))
+    assert np.min(np.abs(full - 1)) < 1e-12 and deflated.shape == rest.shape
+    np.testing.assert_allclose(np.sort_complex(deflated), np.sort_complex(rest), rtol=0, atol=RTOL_DEFLATE)
+    radius = np.max(np.abs(deflated))
+    assert (radius < 1) == (order == 1) and float(st.spectral_radius(dplant, k, tau / 1e-3, 8)) > 1  # the buffer's grows at every order
 
 
 @pytest.mark.parametrize("k", [0.0, 1e-3, PAPER_K, -55.0])

@@ -24,7 +24,7 @@ from jaxflex.analysis import stability
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
 from tuning.run import FIGURES
-from tuning.tuner import CHECKPOINT, DELAY_NOTE, DELAYS, Problem, TuneConfig, summarize, tune
+from tuning.tuner import CHECKPOINT, DELAY_NOTE, Problem, TuneConfig, summarize, tune
 
 RTOL_FD = 1e-5  # central differences, float64
 
@@ -604,7 +604,7 @@ def test_cli_tune_says_whose_loop_the_radius_is(monkeypatch, tmp_path, capsys, d
     assert cli.main(["tune", "--config", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "sampled-loop spectral radius 0.99000000, stable (decay rate 10 1/s; paper gains 0.99065454)\n" in out
-    assert (f"note: {DELAY_NOTE[delay]}\n" in out) if delay != "linear" else "note:" not in out
+    assert (f"note: {DELAY_NOTE[delay]}\n" in out) if delay == "cubic" else "note:" not in out  # the linear and Pade loops' own radii
 
 
 def test_cli_tune_with_toml_config(tmp_path, capsys):
@@ -989,11 +989,29 @@ def test_reported_spectral_radius_is_float64_in_a_float32_run(tmp_path):
     assert st["spectral_radius"] == pytest.approx(top, rel=1e-6, abs=0)
 
 
-def test_a_pade_run_says_whose_loop_its_radius_is(tmp_path, capsys):
-    """The radius and penalty are the buffer's (linear interpolation) whatever the delay
-    simulated; tuned.json said nothing of it, though a Pade order 1 loop at k = 150, tau = 5 ms
-    decays where the buffer's grows."""
-    state = tune(TuneConfig(controller="dfs", delay="pade", pade_order=2, steps=1, **SHARED), tmp_path, progress=False)
-    assert summarize(state)["stability"]["note"].endswith("; " + DELAY_NOTE["pade"]) and set(DELAY_NOTE) == set(DELAYS) - {"linear"}
+def test_a_pade_run_reports_and_penalises_its_own_loop(tmp_path, capsys):
+    """With delay = "pade" the radius and penalty were the buffer's, a different loop: at
+    k = 150, tau = 5 ms the order-1 loop decays (0.989) where the buffer's grows (1.063)."""
+    config = TuneConfig(controller="dfs", delay="pade", pade_order=1, steps=1, **SHARED)
+    problem, at = Problem(config), jnp.asarray([150.0, 0.005])
+    log_radius = lambda p: problem.dfs_log_radius(DFSParams(p[0], p[1]))
+    with jax.enable_x64(True):
+        nominal = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, config.method)
+        pade1, buffer = (float(jnp.max(jnp.abs(jnp.linalg.eigvals(m)))) for m in (
+            stability.deflated_pade_loop_matrix(nominal, 150.0, 0.005, 1), stability.deflated_loop_matrix(nominal, 150.0, 5.0, config.capacity)))
+    assert pade1 < 1 < buffer
+    assert float(log_radius(at)) == pytest.approx(math.log(pade1), rel=1e-9)
+    # its derivative in k and tau, which the penalty follows, against central differences
+    grad = jax.grad(log_radius)(at)
+    for i, h in enumerate((1e-3, 1e-8)):
+        step = jnp.zeros(2).at[i].set(h)
+        fd = (log_radius(at + step) - log_radius(at - step)) / (2 * h)
+        assert float(grad[i]) == pytest.approx(float(fd), rel=1e-5)
+    state = tune(config, tmp_path, progress=False)
+    summary = summarize(state)
+    assert "Pade" not in summary["stability"]["note"] and set(DELAY_NOTE) == {"cubic"}
+    with jax.enable_x64(True):
+        paper = float(jnp.max(jnp.abs(jnp.linalg.eigvals(stability.deflated_pade_loop_matrix(nominal, 55.0, 0.005, 1)))))
+    assert summary["stability"]["paper_spectral_radius"] == pytest.approx(paper, rel=1e-12)
     # without the bar, a line for a log: every 30 s and at the last update (it said nothing)
     assert re.search(r"\ntune: 1 of 1 updates \(100 %\) after \d+ s; loss [\d.]+, best held-out [\d.]+\n", capsys.readouterr().err)

@@ -33,7 +33,7 @@ from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
 from jaxflex.heartbeat import Heartbeat
-from jaxflex.plant import check_method, discretize, make_plant
+from jaxflex.plant import DiscretePlant, check_method, discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plant, check_plants, pad_batch, sample_scenarios
 from tuning import objectives
@@ -43,11 +43,10 @@ from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_contro
 CHECKPOINT = "checkpoint.npz"
 
 
-# What tuned.json's stability note adds where the loop simulated is not the buffer's whose
-# radius it reports (a Pade order 1 loop at k = 150, tau = 5 ms decays where that buffer's grows).
+# What tuned.json's stability note adds where the loop simulated is not the one whose radius
+# it reports: the cubic read's loop matrix is not built (the linear and Pade loops' are).
 DELAY_NOTE = {
     "cubic": "the radius and the penalty are those of the buffer read by linear interpolation, the loop simulated (cubic) at whole samples of delay only",
-    "pade": "the radius and the penalty are those of the loop with the delay itself (a buffer), not of the Pade filter simulated, whose stability can differ at a low pade_order",
 }
 
 
@@ -71,8 +70,8 @@ class TuneConfig:
       capacity: delay buffer capacity in samples; tau is tuned in [dt, capacity dt].
       delay: how DFS reads theta(t - tau): "linear" or "cubic" buffer interpolation, or
         "pade" states (tuning.transforms.DELAYS). The stability penalty and the reported
-        radius always use the loop matrix of the linear-interpolation buffer: the exact delay
-        at whole samples, not the loop simulated with "pade" (``DELAY_NOTE``).
+        radius use the loop matrix of the loop simulated for "linear" and "pade", and the
+        linear buffer's for "cubic" (the same loop at whole samples; ``DELAY_NOTE``).
       pade_order: Pade order with delay = "pade" (>= 1).
       fuzzy_temperature: smoothing temperature of the fuzzy controller (0 = faithful).
       initial: starting physical parameters by name (k, tau_s, k1, k2, k3); missing names
@@ -263,9 +262,9 @@ class Problem:
 
     def dfs_log_radius(self, params: DFSParams) -> jax.Array:
         """Log spectral radius of the sampled loop of the nominal plant under DFS ``params``,
-        with its delay states and without the structural eigenvalue 1."""
-        loop = stability.deflated_loop_matrix(self.nominal, params.k, params.tau_s / self.dt, self.config.capacity)
-        return objectives.log_spectral_radius(loop)
+        with its delay states (the Pade filter's with delay = "pade") and without the structural
+        eigenvalue 1."""
+        return objectives.log_spectral_radius(_deflated_loop(self.nominal, params, self.dt, self.config))
 
     def _objective(self, raw: Any, batch: Scenario) -> tuple[jax.Array, dict[str, jax.Array]]:
         terms = self._terms(raw, batch)
@@ -336,6 +335,14 @@ def _resume_line(out_dir: str, meta: dict[str, Any], steps: int) -> str:
     if meta["step"] == steps and history[-1].get("step") == steps:
         return f"the run in {out_dir} has finished all {steps} updates; writing its results again (--steps above {steps} goes on)"
     return f"resuming from {os.path.join(out_dir, CHECKPOINT)}, after {meta['step']} of {steps} updates"
+
+
+def _deflated_loop(nominal: DiscretePlant, params: DFSParams, dt: float, config: TuneConfig) -> jax.Array:
+    """The sampled DFS loop of the run's delay, without its structural eigenvalue: the Pade
+    filter's with delay = "pade", else the buffer's read by linear interpolation."""
+    if config.delay == "pade":
+        return stability.deflated_pade_loop_matrix(nominal, params.k, params.tau_s, config.pade_order)
+    return stability.deflated_loop_matrix(nominal, params.k, params.tau_s / dt, config.capacity)
 
 
 def _history_csv(history: list[dict[str, Any]], names: list[str]) -> str:
@@ -576,8 +583,9 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
             def log_radius(p: DFSParams) -> float:
                 # A delay at an end of its range, rounded in the run's dtype, may come out a
                 # hair outside [1, capacity] samples (64.000003); it is that end.
-                delay = min(max(float(p.tau_s) / problem.dt, 1.0), problem.config.capacity)
-                return math.log(float(stability.spectral_radius(nominal, float(p.k), delay, problem.config.capacity)))
+                tau = min(max(float(p.tau_s), problem.dt), problem.config.capacity * problem.dt)
+                loop = _deflated_loop(nominal, DFSParams(float(p.k), tau), problem.dt, problem.config)
+                return math.log(float(jnp.max(jnp.abs(jnp.linalg.eigvals(loop)))))
 
             log_rho = log_radius(dfs_params)
             paper_log_rho = log_radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0])
