@@ -477,7 +477,7 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
 
 def _tune(args: argparse.Namespace) -> int:
     from tuning.run import run_tune
-    from tuning.tuner import DELAY_NOTE, TuneConfig
+    from tuning.tuner import TuneConfig
 
     values = fileio.read_toml(args.config) if args.config else {}
     with _as_typed({"learning_rate": "--lr" if args.lr is not None else None}):
@@ -508,8 +508,6 @@ def _tune(args: argparse.Namespace) -> int:
         part = " of the DFS part alone (the fuzzy part is nonlinear)" if summary["controller"] == "dfs+fuzzy" else ""
         verdict = "stable" if st["stable"] else "UNSTABLE: the loop grows at these gains"
         print(f"sampled-loop spectral radius{part} {_radius(st['spectral_radius'])}, {verdict} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {_radius(st['paper_spectral_radius'])})")
-        if config.delay in DELAY_NOTE:
-            print(f"note: {DELAY_NOTE[config.delay]}")
     print(f"wrote {os.path.join(args.out, 'tuned.json')}, history.csv and figures")
     return 0
 

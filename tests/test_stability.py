@@ -225,6 +225,36 @@ def test_pade_matrix_reproduces_the_rollout_and_deflates_the_structural_eigenval
     assert (radius < 1) == (order == 1) and float(st.spectral_radius(dplant, k, tau / 1e-3, 8)) > 1  # the buffer's grows at every order
 
 
+@pytest.mark.parametrize("d", [4.3, 1.6, 7.5, 5.0])
+def test_cubic_matrix_reproduces_the_rollout_and_deflates_the_structural_eigenvalue(plant, d):
+    """The loop tune penalises and reports with delay = "cubic" (it used the linear read's,
+    the same loop at whole samples only): 4-point Lagrange on lags floor(d) - 1 .. floor(d) + 2,
+    clamped into the buffer of 9 samples at d = 1.6 (lags 0..3) and d = 7.5 (lags 5..8)."""
+    dplant = discretize(plant, 1e-3, "zoh")
+    x0 = jax.random.normal(jax.random.key(1), (6,)) * jnp.asarray([1e-2, 1e-3, 1e-4, 1e-1, 1e-2, 1e-3])
+    steps, n_hist = 200, 8
+    traj = rollout(dplant, dfs(1e-3, capacity=n_hist, interpolation="cubic"), DFSParams(PAPER_K, d * 1e-3), initial_condition(x0, steps))
+    x = np.asarray(traj.x)
+    theta = x[:, 0]
+    hist = np.stack([theta[np.maximum(t - np.arange(1, n_hist + 1), 0)] for t in range(steps)])
+    mat = np.asarray(st.sampled_loop_matrix(dplant, PAPER_K, d, n_hist, interpolation="cubic"))
+    prop = [np.concatenate([x[0], hist[0]])]
+    for _ in range(steps - 1):
+        prop.append(mat @ prop[-1])
+    np.testing.assert_allclose(np.asarray(prop)[:, :6], x, rtol=0, atol=1e-10 * np.abs(x).max())
+    full = np.linalg.eigvals(mat)
+    deflated = np.linalg.eigvals(np.asarray(st.deflated_loop_matrix(dplant, PAPER_K, d, n_hist, interpolation="cubic")))
+    rest = np.delete(full, np.argmin(np.abs(full - 1)))
+    assert np.min(np.abs(full - 1)) < 1e-12
+    big = deflated[np.abs(deflated) > SMALL_EIG]  # the unread slots' zeros scatter, as in the linear read's test
+    assert big.shape[0] == np.sum(np.abs(rest) > SMALL_EIG)
+    for lam in big:
+        assert np.min(np.abs(rest - lam)) < RTOL_DEFLATE
+    linear = float(st.spectral_radius(dplant, PAPER_K, d, n_hist))
+    cubic = np.max(np.abs(deflated))
+    assert (cubic == pytest.approx(linear, rel=1e-12)) == (d == 5.0)  # the same loop at whole samples only
+
+
 @pytest.mark.parametrize("k", [0.0, 1e-3, PAPER_K, -55.0])
 def test_deflation_removes_exactly_the_structural_eigenvalue(plant, k):
     dplant = discretize(plant, 1e-3, "zoh")

@@ -43,13 +43,6 @@ from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_contro
 CHECKPOINT = "checkpoint.npz"
 
 
-# What tuned.json's stability note adds where the loop simulated is not the one whose radius
-# it reports: the cubic read's loop matrix is not built (the linear and Pade loops' are).
-DELAY_NOTE = {
-    "cubic": "the radius and the penalty are those of the buffer read by linear interpolation, the loop simulated (cubic) at whole samples of delay only",
-}
-
-
 @dataclasses.dataclass(frozen=True)
 class TuneConfig:
     """Everything that defines a tuning run (the checkpoint refuses to resume another one).
@@ -70,8 +63,7 @@ class TuneConfig:
       capacity: delay buffer capacity in samples; tau is tuned in [dt, capacity dt].
       delay: how DFS reads theta(t - tau): "linear" or "cubic" buffer interpolation, or
         "pade" states (tuning.transforms.DELAYS). The stability penalty and the reported
-        radius use the loop matrix of the loop simulated for "linear" and "pade", and the
-        linear buffer's for "cubic" (the same loop at whole samples; ``DELAY_NOTE``).
+        radius are those of the loop simulated, with that read.
       pade_order: Pade order with delay = "pade" (>= 1).
       fuzzy_temperature: smoothing temperature of the fuzzy controller (0 = faithful).
       initial: starting physical parameters by name (k, tau_s, k1, k2, k3); missing names
@@ -339,10 +331,10 @@ def _resume_line(out_dir: str, meta: dict[str, Any], steps: int) -> str:
 
 def _deflated_loop(nominal: DiscretePlant, params: DFSParams, dt: float, config: TuneConfig) -> jax.Array:
     """The sampled DFS loop of the run's delay, without its structural eigenvalue: the Pade
-    filter's with delay = "pade", else the buffer's read by linear interpolation."""
+    filter's with delay = "pade", else the buffer's read as the run reads it."""
     if config.delay == "pade":
         return stability.deflated_pade_loop_matrix(nominal, params.k, params.tau_s, config.pade_order)
-    return stability.deflated_loop_matrix(nominal, params.k, params.tau_s / dt, config.capacity)
+    return stability.deflated_loop_matrix(nominal, params.k, params.tau_s / dt, config.capacity, config.delay)
 
 
 def _history_csv(history: list[dict[str, Any]], names: list[str]) -> str:
@@ -595,8 +587,7 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
             "decay_rate_per_s": -log_rho / problem.dt,
             "stable": log_rho < 0,
             "note": "sampled DFS loop on the nominal plant with its delay states; the structural z = 1 (no position action) is excluded"
-            + ("; the fuzzy part of dfs+fuzzy is not included (nonlinear)" if problem.config.controller == "dfs+fuzzy" else "")
-            + (f"; {DELAY_NOTE[problem.config.delay]}" if problem.config.delay in DELAY_NOTE else ""),
+            + ("; the fuzzy part of dfs+fuzzy is not included (nonlinear)" if problem.config.controller == "dfs+fuzzy" else ""),
         }
     return out
 

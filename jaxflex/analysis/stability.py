@@ -606,7 +606,7 @@ def _check_sampled_args(k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None
     return n_hist
 
 
-def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None = None) -> jax.Array:
+def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None = None, interpolation: str = "linear") -> jax.Array:
     """The exact one-sample map of jaxflex's sampled DFS loop.
 
     ``xi_k = [x_k, theta_{k-1}, ..., theta_{k-n_hist}]``; ``u_k = -k (theta_k - theta_{k-d})``;
@@ -623,33 +623,56 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
         eigenvalues (no defective block whose computed eigenvalues would scatter by
         eps^(1/size)).
       n_hist: static history length >= d.
+      interpolation: how a fractional d is read, ``"linear"`` or ``"cubic"`` (4-point
+        Lagrange, as ``dfs(interpolation="cubic")``; slots up to the last one it reads are live).
 
     Returns:
       [n_x + n_hist, n_x + n_hist] matrix.
     """
     n_hist = _check_sampled_args(k, delay_steps, n_hist)
-    return _loop_matrix(check_sampled(plant), k, delay_steps, n_hist)
+    return _loop_matrix(check_sampled(plant), k, delay_steps, n_hist, interpolation)
 
 
-def _loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int) -> jax.Array:
-    """The loop map for a whole or fractional delay d (linear interpolation between samples).
+def _read(delay_steps: ArrayLike, n_hist: int, interpolation: str, dtype) -> tuple[jax.Array, jax.Array]:
+    """The delay read as weights on ``theta_{k-j}``, j = 0..n_hist, and the last lag it reads.
 
-    ``theta(t - d dt) ~ (1 - f) theta_{k-w} + f theta_{k-w-1}`` with ``w = floor(d)``, ``f = d - w``:
-    exactly the rollout with ``dfs(interpolation="linear")`` (and with "nearest" at whole d).
-    History slots beyond ``floor(d) + 1`` are neither shifted nor read. At a whole d slot d + 1
-    is read with weight ``f = 0``, so it is kept live: the derivative in d (from above) reads it.
+    ``"linear"``: ``(1 - f) theta_{k-w} + f theta_{k-w-1}`` with ``w = floor(d)``, ``f = d - w``,
+    as ``dfs(interpolation="linear")`` (and "nearest" at whole d); at a whole d lag d + 1 is
+    read with weight 0, so it is kept live: the derivative in d (from above) reads it.
+    ``"cubic"``: 4-point Lagrange on the lags ``s .. s + 3``, ``s = floor(d) - 1`` clamped into
+    the buffer of ``n_hist + 1`` samples (on all of them when it holds fewer than 4), as
+    ``jaxflex.delay.delay_read``.
     """
+    d = jnp.asarray(delay_steps, dtype)
+    lags = jnp.arange(n_hist + 1, dtype=dtype)
+    if interpolation == "linear":
+        whole = jnp.floor(d)
+        frac = d - whole
+        return (1 - frac) * (lags == whole) + frac * (lags == whole + 1), whole + 1
+    if interpolation != "cubic":
+        raise ValueError(f"interpolation must be 'linear' or 'cubic'; got {interpolation!r}")
+    n_pts = min(4, n_hist + 1)  # a buffer of 2 or 3 samples: Lagrange on all of them, as delay_read
+    start = jnp.clip(jnp.floor(d) - 1, 0, n_hist + 1 - n_pts)
+    t = d - start
+    weights = jnp.zeros(n_hist + 1, dtype)
+    for i in range(n_pts):  # the Lagrange basis as delay_read forms it
+        w = jnp.ones_like(t)
+        for j in range(n_pts):
+            if j != i:
+                w = w * (t - j) / (i - j)
+        weights = weights + w * (lags == start + i)
+    return weights, start + n_pts - 1
+
+
+def _loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int, interpolation: str = "linear") -> jax.Array:
+    """The loop map for a whole or fractional delay d, read as ``_read`` says. History slots
+    beyond the last lag read are neither shifted nor read."""
     Ad, Bd = plant.Ad, plant.Bd
     dtype = Ad.dtype
     c = plant.C[:1]  # [1, n]
     k = jnp.asarray(k, dtype)
-    d = jnp.asarray(delay_steps, dtype)
-    whole = jnp.floor(d)
-    frac = d - whole
-    lags = jnp.arange(n_hist + 1, dtype=dtype)  # weights on theta_{k-j}, j = 0..n_hist
-    weights = (1 - frac) * (lags == whole) + frac * (lags == whole + 1)
+    weights, live = _read(delay_steps, n_hist, interpolation, dtype)  # weights on theta_{k-j}, j = 0..n_hist
     slots = jnp.arange(1, n_hist + 1, dtype=dtype)
-    live = whole + 1
     shift = (slots[:, None] == slots[None, :] + 1) & (slots[:, None] <= live)  # h_i <- h_{i-1}, i <= floor(d) + 1
     top = jnp.concatenate([Ad - k * (1 - weights[0]) * Bd @ c, k * Bd @ weights[None, 1:]], axis=1)
     first = (slots == 1).astype(dtype)[:, None] * c  # h_1 <- theta_k
@@ -657,15 +680,16 @@ def _loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_h
     return jnp.concatenate([top, hist], axis=0)
 
 
-def deflated_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int) -> jax.Array:
+def deflated_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int, interpolation: str = "linear") -> jax.Array:
     """The sampled loop map restricted to the complement of its structural eigenvectors.
 
     Its eigenvalues are those of :func:`sampled_loop_matrix` with one eigenvalue 1 removed per
-    structural direction. ``delay_steps`` may be fractional and traced (linear interpolation;
-    see ``_loop_matrix``), in [1, n_hist]; the plant must be concrete.
+    structural direction. ``delay_steps`` may be fractional and traced, in [1, n_hist], read
+    by ``interpolation``, ``"linear"`` or ``"cubic"`` as ``dfs`` reads it (see ``_read``); the
+    plant must be concrete.
     """
     n_hist = _check_sampled_args(k, delay_steps, n_hist)
-    return _deflated(plant, k, delay_steps, jnp.asarray(structural_directions(check_sampled(plant)), plant.Ad.dtype), n_hist)
+    return _deflated(plant, k, delay_steps, jnp.asarray(structural_directions(check_sampled(plant)), plant.Ad.dtype), n_hist, interpolation)
 
 
 def pade_loop_matrix(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLike, order: int, hold: str = "foh") -> jax.Array:
@@ -700,13 +724,14 @@ def deflated_pade_loop_matrix(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLi
     return q2.T @ pade_loop_matrix(plant, k, tau_s, order, hold) @ q2
 
 
-def _deflated(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, v: jax.Array, n_hist: int) -> jax.Array:
+def _deflated(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, v: jax.Array, n_hist: int, interpolation: str = "linear") -> jax.Array:
     """``Q2^T M Q2`` with Q2 the orthonormal complement of the structural eigenvectors; v: [n_x, n0]."""
     dtype = v.dtype
-    live = (jnp.arange(1, n_hist + 1, dtype=dtype) <= jnp.floor(jnp.asarray(delay_steps, dtype)) + 1).astype(dtype)[:, None]
+    last = _read(delay_steps, n_hist, interpolation, dtype)[1]
+    live = (jnp.arange(1, n_hist + 1, dtype=dtype) <= last).astype(dtype)[:, None]
     r = jnp.concatenate([v, live * (plant.C[:1] @ v)], axis=0)  # [v, c v, ..., c v, 0, ...]
     q2 = _deflation_basis(r)
-    return q2.T @ _loop_matrix(plant, k, delay_steps, n_hist) @ q2
+    return q2.T @ _loop_matrix(plant, k, delay_steps, n_hist, interpolation) @ q2
 
 
 @partial(jax.jit, static_argnums=4)
