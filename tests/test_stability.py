@@ -225,6 +225,23 @@ def test_pade_matrix_reproduces_the_rollout_and_deflates_the_structural_eigenval
     assert (radius < 1) == (order == 1) and float(st.spectral_radius(dplant, k, tau / 1e-3, 8)) > 1  # the buffer's grows at every order
 
 
+def test_pade_and_cubic_matrices_refuse_bad_input(plant):
+    dplant = discretize(plant, 1e-3, "rk4")
+    for call, said in (
+        (lambda: st.pade_loop_matrix(plant, 55.0, 0.005, 2), r"plant must be a DiscretePlant \(build one with plant.discretize"),
+        (lambda: st.deflated_pade_loop_matrix(plant, 55.0, 0.005, 2), r"plant must be a DiscretePlant"),
+        (lambda: st.deflated_pade_loop_matrix(dplant, float("nan"), 0.005, 2), r"k must be finite; got nan"),
+        (lambda: st.pade_loop_matrix(dplant, 55.0, 0.0, 2), r"tau_s must be a finite delay > 0 \(s\); got 0.0"),
+        (lambda: st.pade_loop_matrix(dplant, 55.0, float("nan"), 2), r"tau_s must be a finite delay > 0"),
+        (lambda: st.pade_loop_matrix(dplant, 55.0, 0.005, 0), r"pade_order must be an integer in \[1, 100\]; got 0"),
+        (lambda: st.pade_loop_matrix(dplant, 55.0, 0.005, 2, "xyz"), r"hold must be one of \('foh', 'zoh'\); got 'xyz'"),
+        (lambda: st.deflated_loop_matrix(dplant, 55.0, 4.3, 8, "quadratic"), r"interpolation must be 'linear' or 'cubic'; got 'quadratic'"),
+        (lambda: st.deflated_loop_matrix(dplant, 55.0, 9.5, 8, "cubic"), r"delay_steps must be a number of samples in \[1, n_hist = 8\] \(fractional: read between samples by interpolation\); got 9.5"),
+    ):
+        with pytest.raises(ValueError, match=said):
+            call()
+
+
 @pytest.mark.parametrize("d", [4.3, 1.6, 7.5, 5.0])
 def test_cubic_matrix_reproduces_the_rollout_and_deflates_the_structural_eigenvalue(plant, d):
     """The loop tune penalises and reports with delay = "cubic" (it used the linear read's,

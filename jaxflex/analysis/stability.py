@@ -602,7 +602,7 @@ def _check_sampled_args(k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None
             raise
     n_hist = _check_delay_steps(n_hist, "n_hist")
     if arr.ndim != 0 or not 1 <= float(arr) <= n_hist:
-        raise ValueError(f"delay_steps must be a number of samples in [1, n_hist = {n_hist}] (fractional: linear interpolation); got {delay_steps!r}")
+        raise ValueError(f"delay_steps must be a number of samples in [1, n_hist = {n_hist}] (fractional: read between samples by interpolation); got {delay_steps!r}")
     return n_hist
 
 
@@ -701,14 +701,8 @@ def pade_loop_matrix(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLike, order
     rollout starts the filter at its steady state for ``theta_0``. k and tau_s (> 0) may be
     traced; the plant must be concrete.
     """
-    check_sampled(plant)
-    if not isinstance(k, jax.core.Tracer):
-        check_gain(k)
-    dtype = plant.Ad.dtype
-    c = plant.C[:1]
-    filt, _ = pade.sampled_delay(jnp.asarray(tau_s, dtype), pade.check_order(order), float(plant.dt), jnp.zeros(1, dtype), hold)
-    k = jnp.asarray(k, dtype)
-    return jnp.block([[plant.Ad - k * (1 - filt.D[0, 0]) * plant.Bd @ c, k * plant.Bd @ filt.C], [filt.Bd @ c, filt.Ad]])
+    filt, _ = _sampled_pade(plant, k, tau_s, order, hold, jnp.zeros((1, 1), check_sampled(plant).Ad.dtype))
+    return _pade_loop(plant, k, filt)
 
 
 def deflated_pade_loop_matrix(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLike, order: int, hold: str = "foh") -> jax.Array:
@@ -717,11 +711,25 @@ def deflated_pade_loop_matrix(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLi
     steady state (whose output is that angle). Its eigenvalues differ from the buffer loop's:
     at k = 150, tau = 5 ms the order-1 loop decays (0.989) where the exact delay's grows (1.063).
     """
-    dtype = plant.Ad.dtype
-    v = jnp.asarray(structural_directions(check_sampled(plant)), dtype)
-    _, xi_eq = pade.sampled_delay(jnp.asarray(tau_s, dtype), pade.check_order(order), float(plant.dt), plant.C[:1] @ v, hold)  # [N, n0]
+    v = jnp.asarray(structural_directions(check_sampled(plant)), plant.Ad.dtype)
+    filt, xi_eq = _sampled_pade(plant, k, tau_s, order, hold, plant.C[:1] @ v)  # xi_eq: [N, n0]
     q2 = _deflation_basis(jnp.concatenate([v, xi_eq], axis=0))
-    return q2.T @ pade_loop_matrix(plant, k, tau_s, order, hold) @ q2
+    return q2.T @ _pade_loop(plant, k, filt) @ q2
+
+
+def _sampled_pade(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLike, order: int, hold: str, theta: jax.Array) -> tuple[pade.PadeDiscrete, jax.Array]:
+    """The checked inputs' Pade filter sampled at the (sampled) plant's dt, and its steady
+    states for the angles ``theta`` [1, n] (one ``expm``)."""
+    if not isinstance(k, jax.core.Tracer):
+        check_gain(k)
+    return pade.sampled_delay(jnp.asarray(tau_s, plant.Ad.dtype), pade.check_order(order), float(plant.dt), theta, hold)
+
+
+def _pade_loop(plant: DiscretePlant, k: ArrayLike, filt: pade.PadeDiscrete) -> jax.Array:
+    """``pade_loop_matrix`` from the sampled filter."""
+    c = plant.C[:1]
+    k = jnp.asarray(k, plant.Ad.dtype)
+    return jnp.block([[plant.Ad - k * (1 - filt.D[0, 0]) * plant.Bd @ c, k * plant.Bd @ filt.C], [filt.Bd @ c, filt.Ad]])
 
 
 def _deflated(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, v: jax.Array, n_hist: int, interpolation: str = "linear") -> jax.Array:
