@@ -7,6 +7,8 @@ import sys
 import time
 from typing import Callable
 
+from jaxflex import checks
+
 
 class Heartbeat:
     """Prints ``"<what>: <done> of <total> <unit> (<pct> %) after <s> s, about <s> s left"``
@@ -15,6 +17,9 @@ class Heartbeat:
     the compile (a 16 s first step in a run of 0.1 s steps)."""
 
     def __init__(self, what: str, unit: str, total: int, done: int = 0, every_s: float = 30.0, clock: Callable[[], float] = time.monotonic):
+        total = checks.integer("total", total)
+        done = checks.integer("done", done, 0, high=total)
+        every_s = checks.number("every_s", every_s, strict=True, unit="seconds")
         self.what, self.unit, self.total, self.done, self.every_s, self.clock = what, unit, total, done, every_s, clock
         self.start = self.last = clock()
         self.first: tuple[float, int] | None = None  # (time, done) at the first update

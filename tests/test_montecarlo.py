@@ -678,6 +678,10 @@ def test_heartbeat_says_the_end_and_leaves_the_compile_out_of_the_time_left(caps
     assert capsys.readouterr().err == ("x: 1 of 5 steps (20 %) after 100 s; note\n"
                                        "x: 3 of 5 steps (60 %) after 140 s, about 40 s left; note\n"
                                        "x: 5 of 5 steps (100 %) after 160 s; note\n")
+    for kwargs, said in ((dict(total=0), r"total must be an integer >= 1; got 0"), (dict(total=5, done=6), r"done must be an integer in \[0, 5\]; got 6"),
+                         (dict(total=5, every_s=-1.0), r"every_s must be a finite number of seconds > 0; got -1.0")):
+        with pytest.raises(ValueError, match=said):
+            Heartbeat("x", "steps", **kwargs)
 
 
 def test_tip_bands_are_over_the_first_scenarios_of_chunk_0():
