@@ -1,7 +1,8 @@
 """Checks of plain Python options (counts, seeds, weights), shared by every public entry point.
 
 Each returns the value as a Python ``int`` or ``float`` (so that NumPy scalars read from
-arrays or files are accepted and stored as plain numbers) and raises ``ValueError`` naming the
+arrays or files, and concrete 0-d NumPy or JAX arrays, are accepted and stored as plain
+numbers; a float32 as the shortest decimal that reads back to it) and raises ``ValueError`` naming the
 option and the accepted range. Bools are refused everywhere: ``True`` is an ``int`` to Python
 but never a count or a weight to a user. ``real_array`` is the type check of array-valued
 parameters (gains, centres, the arm's constants), whose ranges their own checks add.
@@ -15,16 +16,32 @@ import math
 import numbers
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+
+from jaxflex import fileio
 
 SEED_RANGE = (-(2**63), 2**63)
 """Seeds are stored as 64-bit integers: ``[-2**63, 2**63)``."""
 
 
+def _plain(name: str, value: Any) -> Any:
+    """A NumPy scalar or a concrete 0-d NumPy or JAX array as the Python number it holds, a
+    narrow float as the shortest decimal that reads back to it (``jnp.asarray(0.6)``, a
+    float32, is 0.6, not 0.6000000238418579); a bool stays a bool, to be refused. Anything
+    else as it is; a traced value is refused by ``name``: an option is a constant of the run."""
+    if isinstance(value, jax.core.Tracer):
+        raise ValueError(f"{name} must be a concrete number, not traced under jit, vmap or grad; got {value!r}")
+    if isinstance(value, (np.generic, np.ndarray, jax.Array)) and not isinstance(value, jax.core.Tracer) and np.shape(value) == ():
+        return fileio.shortest(value)
+    return value
+
+
 def integer(name: str, value: Any, low: int = 1, unit: str = "", high: int | None = None) -> int:
     """``value`` as an int >= ``low`` (and <= ``high``); ``unit`` (e.g. ``"samples"``) is
     named in the message."""
+    value = _plain(name, value)
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low or (high is not None and value > high):
         bound = f">= {low}" if high is None else f"in [{low}, {high}]"
         raise ValueError(f"{name} must be an integer {bound}{f' ({unit})' if unit else ''}; got {value!r}")
@@ -33,6 +50,7 @@ def integer(name: str, value: Any, low: int = 1, unit: str = "", high: int | Non
 
 def seed(name: str, value: Any) -> int:
     """``value`` as an int in ``SEED_RANGE``."""
+    value = _plain(name, value)
     low, high = SEED_RANGE
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= value < high:
         raise ValueError(f"{name} must be an integer in [-2**63, 2**63); got {value!r}")
@@ -41,6 +59,7 @@ def seed(name: str, value: Any) -> int:
 
 def number(name: str, value: Any, low: float = 0.0, *, strict: bool = False, unit: str = "") -> float:
     """``value`` as a finite float >= ``low`` (> ``low`` when ``strict``)."""
+    value = _plain(name, value)
     bound = f"{'>' if strict else '>='} {low:g}"
     if (
         isinstance(value, bool)
