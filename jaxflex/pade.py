@@ -123,10 +123,10 @@ MAX_ORDER = 100
 minutes (21 s at 150) and gain nothing a sampled loop can use."""
 
 
-def check_order(order: int) -> int:
+def check_order(order: int, name: str = "order") -> int:
     """The order sets array shapes, so it must be an integer in [1, ``MAX_ORDER``] (returned
-    as an int)."""
-    return checks.integer("pade_order", order, high=MAX_ORDER)
+    as an int; ``name`` is the caller's argument)."""
+    return checks.integer(name, order, high=MAX_ORDER)
 
 
 def _monic_denominator(order: int) -> list[int]:

@@ -100,8 +100,9 @@ def check_plant(plant: LinearPlant | DiscretePlant, name: str = "plant") -> Line
 
 
 def n_modes_of(plant: LinearPlant | DiscretePlant) -> int:
-    """Number of assumed modes, read from the (static) state dimension."""
-    return check_plant(plant).C.shape[1] // 2 - 1
+    """Number of assumed modes, read from the (static) state dimension (of one plant or of a
+    batch of them)."""
+    return check_plant(plant).C.shape[-1] // 2 - 1
 
 
 def make_plant(params: beam.BeamParams | None = None, n_modes: int = 2) -> LinearPlant:

@@ -163,7 +163,8 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
     for path, leaf in jax.tree_util.tree_leaves_with_path(params):
         leaf_dtype = getattr(leaf, "dtype", None)
         weak = getattr(getattr(leaf, "aval", leaf), "weak_type", False)
-        if leaf_dtype is not None and jnp.issubdtype(leaf_dtype, jnp.floating) and not weak and jnp.promote_types(leaf_dtype, dtype) != dtype:
+        # canonicalize: without x64 JAX reads a NumPy float64 (a gain from np.linspace) as float32
+        if leaf_dtype is not None and jnp.issubdtype(leaf_dtype, jnp.floating) and not weak and jnp.promote_types(jax.dtypes.canonicalize_dtype(leaf_dtype), dtype) != dtype:
             raise ValueError(
                 f"params{jax.tree_util.keystr(path)} is {leaf_dtype}, wider than the plant's {dtype}: "
                 f"build the parameters in {dtype} (e.g. by_name(..., dtype=...))"
@@ -288,6 +289,8 @@ def rollout(
     state1, u0 = step(params, init(params, y0), y0)
     if jnp.shape(u0) != (1,) + batch:
         raise ValueError(f"the controller's step must return the torque u with shape {(1,) + batch} (N*m{', a trailing batch axis when batched' if batch else ''}); got shape {jnp.shape(u0)}")
+    if jnp.result_type(u0) != y0.dtype:  # else lax.scan refuses the carry with a message that names no controller
+        raise ValueError(f"the controller's step must return the torque u in the plant's dtype {y0.dtype} (build its constants in it, or cast u with .astype(y.dtype)); got {jnp.result_type(u0)}")
     # noise[k + 1] for iteration k; the last iteration's controller step (its u[T] is never
     # used) sees zero noise.
     inputs = (force, jnp.concatenate([noise[1:], jnp.zeros_like(noise[:1])]))

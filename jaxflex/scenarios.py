@@ -164,7 +164,9 @@ def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, d
     ``[theta theta_dot q1 q2 q1_dot q2_dot]``.
 
     Args:
-      plant: the plant (its number of modes, and a sampled plant's ``dt``).
+      plant: the plant (its number of modes, and a sampled plant's ``dt``); for a batch of
+        ``B`` plants (``batch_plant``), sharing one ``dt``, the scenario's ``x0`` is ``[B, n_x]``
+        and its force and noise are shared.
       horizon_s: simulated time (s); the paper's figures show 3 s.
       dt: sample time (s); default: a sampled plant's own ``dt`` (needed when that is
         traced, under ``jit`` or ``vmap``), else the paper's 1 ms. A different ``dt`` than a
@@ -175,7 +177,13 @@ def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, d
       dtype: floating dtype of the arrays (default: the plant's).
     """
     n = n_modes_of(plant)
-    plant_dt = float(plant.dt) if isinstance(plant, DiscretePlant) and is_concrete(plant.dt) else None
+    batch = tuple(plant.C.shape[:-2])
+    plant_dt = None
+    if isinstance(plant, DiscretePlant) and is_concrete(plant.dt):
+        dts = np.asarray(plant.dt)
+        if not np.all(dts == dts.flat[0]):
+            raise ValueError(f"paper_scenario: the batch of plants has sample times from {dts.min():.7g} to {dts.max():.7g} s; they must share one dt (the horizon's number of samples)")
+        plant_dt = float(fileio.shortest(dts.flat[0]))  # a float32 plant's 1 ms reads 0.001, not 0.0010000000474974513
     if dt is None and isinstance(plant, DiscretePlant) and plant_dt is None:
         raise ValueError("paper_scenario: the sampled plant's dt is traced (under jit or vmap), and the horizon's number of samples must be known: pass dt=... (s)")
     if dt is None:
@@ -184,7 +192,8 @@ def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, d
         raise ValueError(f"dt = {dt!r} s differs from the sampled plant's dt = {plant_dt:.7g} s: leave dt out, or sample the plant at it")
     steps = horizon_steps(horizon_s, dt)
     dtype = checks.float_dtype("dtype", plant.C.dtype if dtype is None else dtype)
-    return Scenario(jnp.asarray(_paper_x0(n, reading), dtype), jnp.zeros((steps, 1), dtype), jnp.zeros((steps, 2), dtype))
+    x0 = np.broadcast_to(_paper_x0(n, reading), batch + (2 * (n + 1),))
+    return Scenario(jnp.asarray(x0, dtype), jnp.zeros((steps, 1), dtype), jnp.zeros((steps, 2), dtype))
 
 
 def _is_raw_key(key: jax.Array) -> bool:

@@ -190,6 +190,7 @@ def test_cli_writes_a_config_the_other_commands_read(tmp_path, capsys):
     summary = json.loads((out / "calibration.json").read_text())
     np.testing.assert_allclose(summary["model_after_hz"], measured, rtol=1e-9)
     np.testing.assert_allclose(summary["model_damping"], [0.015, 0.025], rtol=1e-9)
+    assert summary["notes"] == []  # an exact fit of plausible constants: nothing to check
     # the written config is the calibrated arm for stability (its own reader) and tune
     _, arm, n_modes = cli._arm_config(str(out / "calibrated.toml"))
     np.testing.assert_allclose(natural_frequencies_hz(arm, n_modes), measured, rtol=1e-9)
@@ -205,7 +206,7 @@ def test_cli_notes_a_calibrated_arm_that_still_misses_the_measurements(tmp_path,
     assert abs(float(row.group(1))) > 5  # the table's own error for mode 2, the worst
     assert (
         f"note: the calibrated arm still misses mode 2 by {abs(float(row.group(1))):.3g} % (over 5 %): fitting youngs_modulus_pa cannot match these "
-        "frequencies; check --hub (the arm was held clamped?), that they are the first modes in order, and their units\n"
+        "frequencies; check --hub (hub; the arm was held clamped?), that they are the first modes in order, and their units\n"
     ) in captured.err
     assert cli.main(["calibrate", "--freqs", "13.32", "36.47", "--out", str(tmp_path / "b")]) == 0
     assert "still misses" not in capsys.readouterr().err
@@ -214,6 +215,17 @@ def test_cli_notes_a_calibrated_arm_that_still_misses_the_measurements(tmp_path,
     captured = capsys.readouterr()
     worst = max(abs(float(e)) for e in re.findall(r"([+-]\d+\.\d+) %$", captured.out, re.M))
     assert 0 < worst <= 5 and "still misses" not in captured.err
+
+
+def test_python_callers_get_the_notes_the_cli_prints(tmp_path, capsys):
+    """The unit-slip note was printed by the CLI only: calibrate() from Python moved E 51x
+    with no word. Frequencies in rad/s given as Hz (2 pi times 15.5 and 46.2)."""
+    result = calibrate([2 * np.pi * 15.5, 2 * np.pi * 46.2], PAPER)
+    assert len(result.notes) == 1 and result.notes[0].startswith("youngs_modulus_pa moved by more than 10x from the starting arm: check the units")
+    assert result.as_dict()["notes"] == result.notes
+    assert cli.main(["calibrate", "--freqs", str(2 * np.pi * 15.5), str(2 * np.pi * 46.2), "--out", str(tmp_path / "c")]) == 0
+    assert capsys.readouterr().err.count("note: ") == 1
+    assert json.loads((tmp_path / "c" / "calibration.json").read_text())["notes"] == result.notes
 
 
 def test_cli_names_one_damped_mode_as_mode_1(tmp_path, capsys):

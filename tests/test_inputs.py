@@ -2,15 +2,21 @@
 of these leaked a TypeError or IndexError from deep inside, took a bad value silently, or
 named a narrower range than the one checked. Each is now a ValueError naming the parameter."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxflex.analysis import vibration_reduction_db
-from jaxflex.controllers import DFSParams, by_name, dfs, fuzzy
+from jaxflex.analysis.stability import rightmost_real_grid
+from jaxflex.beam import BeamParams
+from jaxflex.controllers import DFSParams, by_name, combine, dfs, fuzzy
+from jaxflex.controllers.base import Controller
+from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy_params, fuzzy_surface
 from jaxflex.montecarlo import MCConfig, run_montecarlo
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
-from jaxflex.scenarios import paper_scenario
+from jaxflex.scenarios import ScenarioSpec, batch_plant, paper_scenario, sample_scenarios
 from tuning.identify import identify_modes
 from tuning.tuner import TuneConfig, tune
 
@@ -61,3 +67,84 @@ def test_an_empty_batch_of_scenarios_is_refused():
     scenario = paper_scenario(plant, 0.01)
     with pytest.raises(ValueError, match=r"scenario.x0 must hold at least one scenario \(B >= 1\); got shape \(0, 6\)"):
         rollout(plant, dfs(), DFSParams(), scenario._replace(x0=np.zeros((0, 6))))
+
+
+def _plant_and_scenario():
+    plant = discretize(make_plant(), 1e-3)
+    return plant, paper_scenario(plant, 0.01)
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        # a DFSParams, a NamedTuple of two fields, passed for the pair: 'params must be a DFSParams; got float 55.0'
+        (lambda: rollout(*_plant_and_scenario()[:1], combine(dfs(), fuzzy()), DFSParams(), _plant_and_scenario()[1]),
+         r"params of a combined controller must be a pair \(first's params, second's params\), e\.g\. \(DFSParams\(\.\.\.\), fuzzy_params\(\)\); got DFSParams"),
+        # tuple centres passed check() and failed in jnp.result_type with a TypeError
+        (lambda: rollout(*_plant_and_scenario()[:1], fuzzy(), FuzzyParams(1.0, 0.3, 1.0, (-1.0, -0.5, 0.0, 0.5, 1.0), *(jnp.linspace(-1.0, 1.0, 5),) * 2), _plant_and_scenario()[1]),
+         r"angle_centres must be an array \(jnp.asarray\(\.\.\.\), or build the parameters with fuzzy_params\(centres=\.\.\.\)\); got tuple"),
+        # JAX's own TypeError on a string
+        (lambda: fuzzy_surface(fuzzy_params(), "a", 0.1), r"^e must be a real number; got 'a'$"),
+        # scalars: TypeError 'float' object is not iterable
+        (lambda: rightmost_real_grid(make_plant(), 55.0, 0.005), r"k_values and tau_s must be non-empty 1-D arrays \(the grid's axes\); got shapes \(\), \(\)"),
+        # a traced option: 'must be a finite number > 0; got JitTracer'
+        (lambda: jax.jit(lambda h: ScenarioSpec(horizon_s=h))(1.0), r"horizon_s must be a concrete number, not traced under jit, vmap or grad"),
+    ],
+)
+def test_bad_input_found_by_a_python_walkthrough_is_refused_by_name(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_options_accept_concrete_zero_d_arrays_as_the_numbers_they_hold():
+    """A BeamParams of jnp scalars (as built for grad) was refused by TuneConfig as 'must be a
+    finite number > 0; got Array(0.6)'; a float32 reads as the decimal it prints as."""
+    config = TuneConfig(beam=BeamParams(length_m=jnp.asarray(0.6), hub_inertia_kg_m2=np.float32(2e-3)), n_modes=jnp.asarray(3))
+    assert (config.beam.length_m, config.beam.hub_inertia_kg_m2, config.n_modes) == (0.6, 0.002, 3)
+    assert type(config.n_modes) is int
+    assert ScenarioSpec(horizon_s=np.array(0.5)).horizon_s == 0.5
+    with pytest.raises(ValueError, match=r"n_modes must be an integer in \[1, 100\]; got True"):
+        TuneConfig(n_modes=np.bool_(True))  # a bool array stays a bool
+    with pytest.raises(ValueError, match=r"horizon_s must be a finite number > 0; got array\(\[0.5\]\)"):
+        ScenarioSpec(horizon_s=np.array([0.5]))  # one number, not an array of them
+
+
+def _float32_plant_and_scenario():
+    with jax.enable_x64(False):  # the suite runs with x64 on
+        return _plant_and_scenario()
+
+
+def test_a_numpy_float64_gain_runs_in_float32_without_x64():
+    """Without x64 JAX reads a NumPy float64 as float32; a gain from np.linspace was refused as
+    'wider than the plant's float32'. Under x64 it would widen the loop, and stays refused."""
+    plant, scenario = _float32_plant_and_scenario()
+    k = np.linspace(10.0, 100.0, 5)[2]
+    with jax.enable_x64(False):
+        np.testing.assert_array_equal(rollout(plant, dfs(), DFSParams(k, 0.005), scenario).u, rollout(plant, dfs(), DFSParams(float(k), 0.005), scenario).u)
+    with pytest.raises(ValueError, match=r"params.k is float64, wider than the plant's float32"):
+        rollout(plant, dfs(), DFSParams(k, 0.005), scenario)
+
+
+def test_a_controllers_torque_in_another_dtype_is_refused_by_name():
+    """lax.scan refused the carry with a message that named no controller."""
+    plant, scenario = _float32_plant_and_scenario()
+    wide = Controller(lambda p, y: (), lambda p, s, y: (s, (-p * y[:1]).astype(jnp.float64)), lambda p: None)
+    with pytest.raises(ValueError, match=r"the controller's step must return the torque u in the plant's dtype float32 .*; got float64"):
+        rollout(plant, wide, 1.0, scenario)
+
+
+def test_paper_scenario_of_a_batch_of_plants():
+    """A batch of plants (batch_plant) failed in float(plant.dt); its scenario is the paper's
+    x0 for each, with the force and noise shared, and runs as the plants one by one."""
+    nominal = discretize(make_plant(), 1e-3)
+    spec = ScenarioSpec(horizon_s=0.05, youngs_modulus_rel=0.1)
+    batch = sample_scenarios(spec, jax.random.key(1), 3)
+    plants = batch_plant(BeamParams(), 2, 1e-3, "zoh", batch, nominal)
+    scenario = paper_scenario(plants, 0.05)
+    assert scenario.x0.shape == (3, 6) and scenario.force.shape == (50, 1)
+    together = rollout(plants, dfs(), DFSParams(), scenario)
+    for i in range(3):
+        one = jax.tree.map(lambda a: a[i], plants)
+        np.testing.assert_allclose(together.x[i], rollout(one, dfs(), DFSParams(), paper_scenario(one, 0.05)).x, rtol=1e-5, atol=1e-12)
+    with pytest.raises(ValueError, match=r"the batch of plants has sample times from 0.001 to 0.002 s; they must share one dt"):
+        paper_scenario(plants._replace(dt=jnp.asarray([1e-3, 2e-3, 1e-3])))

@@ -207,7 +207,7 @@ def test_python_control_companion_realisation_is_badly_conditioned():
 
 def test_bad_arguments():
     for bad in (0, -1, 2.0, True, None, 101, 1000):
-        with pytest.raises(ValueError, match="pade_order must be an integer in \\[1, 100\\]"):
+        with pytest.raises(ValueError, match="^order must be an integer in \\[1, 100\\]"):
             pade.pade_state_space(TAU, bad)
     with pytest.raises(ValueError, match="hold must be one of"):
         pade.discretize_pade(pade.pade_state_space(TAU, 2), DT, "cubic")

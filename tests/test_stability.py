@@ -233,7 +233,7 @@ def test_pade_and_cubic_matrices_refuse_bad_input(plant):
         (lambda: st.deflated_pade_loop_matrix(dplant, float("nan"), 0.005, 2), r"k must be finite; got nan"),
         (lambda: st.pade_loop_matrix(dplant, 55.0, 0.0, 2), r"tau_s must be a finite delay > 0 \(s\); got 0.0"),
         (lambda: st.pade_loop_matrix(dplant, 55.0, float("nan"), 2), r"tau_s must be a finite delay > 0"),
-        (lambda: st.pade_loop_matrix(dplant, 55.0, 0.005, 0), r"pade_order must be an integer in \[1, 100\]; got 0"),
+        (lambda: st.pade_loop_matrix(dplant, 55.0, 0.005, 0), r"^order must be an integer in \[1, 100\]; got 0"),
         (lambda: st.pade_loop_matrix(dplant, 55.0, 0.005, 2, "xyz"), r"hold must be one of \('foh', 'zoh'\); got 'xyz'"),
         (lambda: st.deflated_loop_matrix(dplant, 55.0, 4.3, 8, "quadratic"), r"interpolation must be 'linear' or 'cubic'; got 'quadratic'"),
         (lambda: st.deflated_loop_matrix(dplant, 55.0, 9.5, 8, "cubic"), r"delay_steps must be a number of samples in \[1, n_hist = 8\] \(fractional: read between samples by interpolation\); got 9.5"),
@@ -337,9 +337,11 @@ def test_spectral_radius_of_a_fractional_delay(plant):
     np.testing.assert_allclose(g, (oracle(5.3 + h) - oracle(5.3 - h)) / (2 * h), rtol=RTOL_GRAD)
     with pytest.raises(ValueError, match=r"delay_steps must be a number of samples in \[1, n_hist = 8\] .*got 8.5"):
         st.spectral_radius(dplant, PAPER_K, 8.5, n_hist)
-    for d in (5.3, 5.0):  # no n_hist: whole samples only, and the refusal says where a fractional delay goes
-        with pytest.raises(ValueError, match=rf"^delay_steps must be an integer >= 1 \(samples\); got {d}; a fractional delay needs n_hist, the history length \(an integer >= the delay\)$"):
-            st.spectral_radius(dplant, PAPER_K, d)
+    with pytest.raises(ValueError, match=r"^delay_steps must be an integer >= 1 \(samples\); got 5.3; a fractional delay needs n_hist, the history length \(an integer >= the delay\)$"):
+        st.spectral_radius(dplant, PAPER_K, 5.3)  # no n_hist: whole samples only, and the refusal says where a fractional delay goes
+    for whole in (0.005 / 0.001, 0.003 / 0.001, np.float32(7.0)):  # tau_s / dt, 5.0 and 2.9999999999999996: that many samples
+        np.testing.assert_array_equal(st.sampled_loop_matrix(dplant, PAPER_K, whole), st.sampled_loop_matrix(dplant, PAPER_K, round(float(whole))))
+        assert float(st.spectral_radius(dplant, PAPER_K, whole)) == float(st.spectral_radius(dplant, PAPER_K, round(float(whole))))
     with pytest.raises(ValueError, match=r"^delay_steps must be an integer >= 1 \(samples\); got 0$"):
         st.spectral_radius(dplant, PAPER_K, 0)
 

@@ -996,8 +996,10 @@ def test_a_pade_or_cubic_run_reports_and_penalises_its_own_loop(tmp_path, capsys
     with jax.enable_x64(True):
         paper = float(jnp.max(jnp.abs(jnp.linalg.eigvals(stability.deflated_pade_loop_matrix(nominal, 55.0, 0.005, 1)))))
     assert summary["stability"]["paper_spectral_radius"] == pytest.approx(paper, rel=1e-12)
-    # without the bar, a line for a log: every 30 s and at the last update (it said nothing)
-    assert re.search(r"\ntune: 1 of 1 updates \(100 %\) after \d+ s; loss [\d.]+, best held-out [\d.]+\n", capsys.readouterr().err)
+    # without the bar, a line for a log: every 30 s and at the end (it said nothing), with the
+    # final point's scores (it gave the best held-out before the final point was scored)
+    line = re.search(r"\ntune: 1 of 1 updates \(100 %\) after \d+ s; loss (\S+), best held-out (\S+)\n", capsys.readouterr().err)
+    assert line and line.groups() == (f"{state['history'][-1]['loss']:.4g}", f"{min(row['val_objective'] for row in state['history']):.4g}")
     # the cubic read's loop likewise (the linear read's, the same loop at whole samples only)
     cubic = Problem(dataclasses.replace(config, delay="cubic"))
     with jax.enable_x64(True):

@@ -50,6 +50,11 @@ RANK_RTOL = 1e-8
 """Singular values of the log-Jacobian below this fraction of the largest count as zero."""
 
 
+MISFIT_PERCENT = 5.0
+"""A calibrated model that misses a measured frequency or damping ratio by more than this (%)
+gets a note (``Calibration.notes``)."""
+
+
 class Calibration(NamedTuple):
     """The outcome of :func:`calibrate`.
 
@@ -95,6 +100,33 @@ class Calibration(NamedTuple):
         Rayleigh pair cannot give every set of ratios: 1 % and 85 % come out 28 % and 75 %)."""
         return 100.0 * (self.after_damping[: self.measured_damping.size] / self.measured_damping - 1.0)
 
+    @property
+    def notes(self) -> list[str]:
+        """What to check before trusting the calibrated arm (``jaxflex calibrate`` prints each
+        as a ``note:``; ``calibration.json`` holds them): a damping ratio or a frequency that the
+        calibrated model misses by more than ``MISFIT_PERCENT``, a field the frequencies
+        determine poorly (a sensitivity over 10) and a field moved more than 10x from its start
+        (frequencies in rad/s given as Hz move the modulus 39x)."""
+        notes = []
+        missed = abs(self.damping_error_percent)
+        if missed.size and missed.max() > MISFIT_PERCENT:  # 0.01, 0.85 became 0.28, 0.75 with no word
+            worst = int(missed.argmax())
+            notes.append(f"the model misses the damping ratio of mode {worst + 1} by {missed[worst]:.3g} % (over {MISFIT_PERCENT:g} %): Rayleigh damping, "
+                         "alpha / (2 omega) + beta omega / 2 with alpha, beta >= 0, cannot give these ratios; check them (a ratio of 0.01 is 1 %; a heavily "
+                         "damped mode found in a record may be noise or an aliased mode)")
+        loose = [name for name, sensitivity in zip(self.fit, self.sensitivity) if sensitivity > 10]
+        if loose:
+            notes.append(f"the measured frequencies determine {', '.join(loose)} poorly (over 10 % per 1 % error in them): fit fewer fields, or measure more modes")
+        moved = [name for name, start in zip(self.fit, self.start) if not 0.1 <= float(getattr(self.beam, name)) / start <= 10]
+        if moved:
+            notes.append(f"{', '.join(moved)} moved by more than 10x from the starting arm: check the units (Hz, not rad/s; SI constants in [beam]) and --hub (hub)")
+        errors = abs(self.error_after_percent)
+        if errors.max() > MISFIT_PERCENT:  # free-hub frequencies fitted as clamped left -34 % and +51 % with no word
+            worst = int(errors.argmax())
+            notes.append(f"the calibrated arm still misses mode {worst + 1} by {errors[worst]:.3g} % (over {MISFIT_PERCENT:g} %): fitting {', '.join(self.fit)} "
+                         f"cannot match these frequencies; check --hub (hub; the arm was held {self.hub}?), that they are the first modes in order, and their units")
+        return notes
+
     def as_dict(self) -> dict[str, Any]:
         """Plain numbers for JSON."""
         return {
@@ -112,6 +144,7 @@ class Calibration(NamedTuple):
             "model_damping": self.after_damping.tolist(),
             "damping_error_percent": self.damping_error_percent.tolist(),
             "evaluations": self.evaluations,
+            "notes": self.notes,
             "beam": {k: (None if v is None else float(v)) for k, v in self.beam._asdict().items()},
         }
 

@@ -113,7 +113,7 @@ class Modes(NamedTuple):
         }
 
 
-def read_record(path: str | os.PathLike, option: str = "--record") -> tuple[np.ndarray, np.ndarray, list[str]]:
+def read_record(path: str | os.PathLike, option: str = "path") -> tuple[np.ndarray, np.ndarray, list[str]]:
     """A record from a comma-separated file: time (s) in the first column, one channel per
     further column; an optional first line of column names; ``#`` starts a comment.
 
@@ -121,7 +121,8 @@ def read_record(path: str | os.PathLike, option: str = "--record") -> tuple[np.n
       ``(t [N], y [N, n_ch], names)``: names from the header line, else ``channel 1``, ...
 
     Raises:
-      ValueError: naming ``option`` for a file that is missing or not such a table.
+      ValueError: naming ``option`` (the CLI passes ``"--record"``) for a file that is missing or
+        not such a table.
     """
     try:
         with open(path, encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of the first cell

@@ -505,6 +505,8 @@ def _tune_locked(
                     bar.set_postfix(loss=f"{row['loss']:.4g}", best_val=f"{state['best_val']:.4g}")
                     bar.close()
                     bar = None
+                if heartbeat is not None:  # its last line, withheld at the last update, has the final point's scores
+                    heartbeat.update(1, f"; loss {row['loss']:.4g}, best held-out {state['best_val']:.4g}")
                 continue
             if progress and bar is None:
                 # opened after this process's first step, which compiled: timed with it, the
@@ -516,7 +518,7 @@ def _tune_locked(
                 bar.update(1)
             if bar is not None:
                 bar.set_postfix(loss=f"{loss:.4g}", best_val=f"{state['best_val']:.4g}")
-            if heartbeat is not None:
+            if heartbeat is not None and state["step"] < config.steps:
                 heartbeat.update(1, f"; loss {loss:.4g}, best held-out {state['best_val']:.4g}")
             if state["step"] % config.checkpoint_every == 0:
                 _save_checkpoint(ckpt_path, state)

@@ -583,27 +583,33 @@ def rightmost_root(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, n_cheb: i
 # 3. The sampled loop (jax.numpy)
 
 
-def _check_sampled_args(k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None) -> int:
-    """The history length: ``n_hist``, or a whole ``delay_steps`` when ``n_hist`` is None.
-    With ``n_hist`` given a concrete delay may be fractional, as a traced one."""
+def _check_sampled_args(k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None) -> tuple[int, ArrayLike]:
+    """The history length and the delay: ``n_hist`` and ``delay_steps``, or with ``n_hist``
+    None a whole ``delay_steps`` as both (a float whole to ``WHOLE_SAMPLE_RTOL``, as
+    ``tau_s / dt`` gives it, ``0.003 / 0.001 = 2.9999999999999996``, as that int). With
+    ``n_hist`` given a concrete delay may be fractional, as a traced one."""
     if not isinstance(k, jax.core.Tracer):
         check_gain(k)
     if isinstance(delay_steps, jax.core.Tracer):
         if n_hist is None:
             raise ValueError("a traced delay_steps needs a static n_hist (history length >= every delay)")
-        return _check_delay_steps(n_hist, "n_hist")
+        return _check_delay_steps(n_hist, "n_hist"), delay_steps
     arr = checks.real_array("delay_steps", delay_steps, scalar=True)
     if n_hist is None:
+        if arr.ndim == 0 and arr.dtype.kind == "f" and np.isfinite(arr) and whole_samples(float(arr)):
+            whole = _check_delay_steps(int(round(float(arr))))
+            return whole, whole
         try:
-            return _check_delay_steps(arr.item() if arr.ndim == 0 and arr.dtype.kind in "iu" else delay_steps)
+            whole = _check_delay_steps(arr.item() if arr.ndim == 0 and arr.dtype.kind in "iu" else delay_steps)
+            return whole, whole
         except ValueError as err:
-            if arr.ndim == 0 and arr.dtype.kind == "f" and float(arr) >= 1:  # 5.5 (or 5.0) samples: say where a fractional delay goes
+            if arr.ndim == 0 and arr.dtype.kind == "f" and float(arr) >= 1:  # 5.5 samples: say where a fractional delay goes
                 raise ValueError(f"{err}; a fractional delay needs n_hist, the history length (an integer >= the delay)") from None
             raise
     n_hist = _check_delay_steps(n_hist, "n_hist")
     if arr.ndim != 0 or not 1 <= float(arr) <= n_hist:
         raise ValueError(f"delay_steps must be a number of samples in [1, n_hist = {n_hist}] (fractional: read between samples by interpolation); got {delay_steps!r}")
-    return n_hist
+    return n_hist, delay_steps
 
 
 def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None = None, interpolation: str = "linear") -> jax.Array:
@@ -616,7 +622,8 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
     Args:
       plant: sampled plant (any ``discretize`` method: the map is exact for its Ad, Bd).
       k: gain (N*m/rad); may be traced.
-      delay_steps: d >= 1 samples. An integer when ``n_hist`` is None (then ``n_hist = d``);
+      delay_steps: d >= 1 samples. A whole number when ``n_hist`` is None (then ``n_hist = d``;
+        a float within ``WHOLE_SAMPLE_RTOL`` of one, as ``tau_s / dt`` gives it, is read as it);
         with ``n_hist`` given it may be fractional (linear interpolation, as
         ``dfs(interpolation="linear")``) and traced (vmap over delays): history slots beyond
         floor(d) + 1 are neither shifted nor read, so they add only semisimple zero
@@ -629,7 +636,7 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
     Returns:
       [n_x + n_hist, n_x + n_hist] matrix.
     """
-    n_hist = _check_sampled_args(k, delay_steps, n_hist)
+    n_hist, delay_steps = _check_sampled_args(k, delay_steps, n_hist)
     return _loop_matrix(check_sampled(plant), k, delay_steps, n_hist, interpolation)
 
 
@@ -688,7 +695,7 @@ def deflated_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayL
     by ``interpolation``, ``"linear"`` or ``"cubic"`` as ``dfs`` reads it (see ``_read``); the
     plant must be concrete.
     """
-    n_hist = _check_sampled_args(k, delay_steps, n_hist)
+    n_hist, delay_steps = _check_sampled_args(k, delay_steps, n_hist)
     return _deflated(plant, k, delay_steps, jnp.asarray(structural_directions(check_sampled(plant)), plant.Ad.dtype), n_hist, interpolation)
 
 
@@ -755,7 +762,7 @@ def sampled_eigenvalues(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
     The plant must be concrete (closed over under jit/vmap); k and the delay may be traced, and
     with ``n_hist`` given the delay may be fractional (see ``sampled_loop_matrix``)."""
     check_sampled(plant)
-    n_hist = _check_sampled_args(k, delay_steps, n_hist)
+    n_hist, delay_steps = _check_sampled_args(k, delay_steps, n_hist)
     dtype = plant.Ad.dtype
     v = jnp.asarray(structural_directions(plant), dtype)
     return _sampled_eigs(plant, jnp.asarray(k, dtype), jnp.asarray(delay_steps, dtype), v, n_hist)
@@ -821,9 +828,13 @@ def _radius_grid(plant, k_values, delay_steps, v, n_hist):
 
 
 def rightmost_real_grid(plant: LinearPlant, k_values: ArrayLike, tau_s: ArrayLike, n_cheb: int = DEFAULT_N_CHEB) -> jax.Array:
-    """[n_tau, n_k] real part of the rightmost non-structural root, batched with ``vmap``."""
+    """[n_tau, n_k] real part of the rightmost non-structural root, batched with ``vmap``, for
+    non-empty 1-D ``k_values`` and ``tau_s`` (s)."""
     check_continuous(plant)
     m = _check_n_cheb(n_cheb)
+    shapes = (checks.real_array("k_values", k_values).shape, checks.real_array("tau_s", tau_s).shape)
+    if any(len(shape) != 1 or shape[0] < 1 for shape in shapes):
+        raise ValueError(f"k_values and tau_s must be non-empty 1-D arrays (the grid's axes); got shapes {shapes[0]}, {shapes[1]}")
     for kv in np.asarray(k_values).tolist():
         check_gain(kv)
     for t in np.asarray(tau_s).tolist():

@@ -86,8 +86,10 @@ def dfs(
         ``(0, capacity dt]``; a traced one there (under ``jit``) gives a NaN torque, so the
         run reports itself diverged instead of running with a clamped delay.
       interpolation: buffer reads: ``"nearest"`` (tau a whole number of samples; a traced
-        tau between samples gives a NaN torque, as one outside the buffer does),
-        ``"linear"`` or ``"cubic"`` (see :mod:`jaxflex.delay`). Unused with ``"pade"``.
+        tau between samples gives a NaN torque, as one outside the buffer does; its
+        derivative in tau is exactly 0: differentiate tau through ``"linear"``, ``"cubic"``
+        or ``"pade"``), ``"linear"`` or ``"cubic"`` (see :mod:`jaxflex.delay`). Unused with
+        ``"pade"``.
       approximation: ``"buffer"`` (ring buffer) or ``"pade"`` (Pade filter states; see the
         module docstring).
       pade_order: N, the Pade order (Python int >= 1); used with ``"pade"`` only.
@@ -104,7 +106,7 @@ def dfs(
         raise ValueError(f"interpolation must be one of {delay.INTERPOLATIONS}; got {interpolation!r}")
     if approximation not in APPROXIMATIONS:
         raise ValueError(f"approximation must be one of {APPROXIMATIONS}; got {approximation!r}")
-    pade_order = pade.check_order(pade_order)
+    pade_order = pade.check_order(pade_order, "pade_order")
     if pade_hold not in pade.HOLDS:
         raise ValueError(f"pade_hold must be one of {pade.HOLDS}; got {pade_hold!r}")
     dt = float(dt)

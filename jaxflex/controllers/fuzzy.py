@@ -240,7 +240,10 @@ def _rule_indices(rules: Sequence[Sequence[str]], set_names: Sequence[str]) -> _
 
 def _check_centre_array(name: str, centres: jax.typing.ArrayLike, n_sets: int) -> None:
     """Refuse, by name, set centres that are not ``[n_sets]``, finite and strictly increasing
-    (concrete values only: traced ones pass)."""
+    (concrete values only: traced ones pass). A tuple or list is refused: in a parameter
+    pytree each of its numbers would be a leaf of its own, which the surface does not read."""
+    if isinstance(centres, (tuple, list)):
+        raise ValueError(f"{name} must be an array (jnp.asarray(...), or build the parameters with fuzzy_params(centres=...)); got {type(centres).__name__} {centres!r}")
     if not is_concrete(centres):
         return
     c = checks.real_array(name, centres)
@@ -593,14 +596,17 @@ def fuzzy_surface(
       centres and the inputs.
 
     Raises:
-      ValueError: for a malformed rule table, centres that are not strictly increasing,
-        non-scalar inputs, a ``temperature`` out of its range (``check_temperature``), or an
+      ValueError: for a malformed rule table, centres that are not an array or not strictly
+        increasing, inputs that are not real numbers or not scalars, a ``temperature`` out of its range (``check_temperature``), or an
         unknown ``defuzz``.
     """
     _check_defuzz(defuzz)
     t = check_temperature(temperature)
     idx = _rule_indices(rules, set_names)
     check_params_type(params, FuzzyParams)
+    for name, value in (("e", e), ("e_dot", e_dot)):
+        if is_concrete(value):
+            checks.real_array(name, value, scalar=True)
     _check_centres(params, len(tuple(set_names)))
     return _surface(params, e, e_dot, idx, defuzz, t)
 
