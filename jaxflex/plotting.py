@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import textwrap
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import matplotlib
 
@@ -62,6 +62,13 @@ def _finite_prefix(values: np.ndarray) -> int:
     return int(np.argmax(bad)) if bad.any() else values.shape[0]
 
 
+def _check_shape(name: str, value: Any, shape: tuple[int, ...], what: str) -> None:
+    """ValueError naming ``name`` when ``value`` is not of ``shape`` (``what`` it holds): a
+    signal cut short would be drawn against the wrong times, or fail inside matplotlib."""
+    if np.shape(value) != shape:
+        raise ValueError(f"{name} must have shape {shape} ({what}); got {np.shape(value)}")
+
+
 def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signals: Sequence[tuple[str, str]], diverged: Mapping[str, bool], title: str, style_of: Mapping[str, str] | None = None) -> plt.Figure:
     """Time responses, one subplot per signal.
 
@@ -81,7 +88,8 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
       style_of: run name -> the run (controller) whose line style it takes.
 
     Raises:
-      ValueError: for no signals, or a run that lacks one of them (naming both).
+      ValueError: for no signals, or a run that lacks one of them or holds one of another
+        shape than ``t`` (naming both).
     """
     if not signals:
         raise ValueError("signals must name at least one (signal, y-axis label) pair")
@@ -90,6 +98,9 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
         if missing:
             raise ValueError(f"runs[{run!r}] lacks signal(s) {missing}; it has {sorted(sig)}")
     t = np.asarray(t, dtype=float)
+    for run, sig in runs.items():
+        for name, _ in signals:
+            _check_shape(f"runs[{run!r}][{name!r}]", sig[name], t.shape, "one value per time of t")
     values = {run: {name: np.asarray(sig[name]) for name, _ in signals} for run, sig in runs.items()}
     quick, end = [], None
     if t.size > 1:
@@ -176,8 +187,7 @@ def psd_limits(freqs: np.ndarray, curves: Sequence[np.ndarray], mode_freqs_hz: S
     there is no such value. For figures meant to be read side by side (fig6 and fig8)."""
     keep = np.asarray(freqs) <= _psd_fmax(freqs, mode_freqs_hz)
     for i, c in enumerate(curves):
-        if np.shape(c) != keep.shape:
-            raise ValueError(f"curves[{i}] must have the shape of freqs {keep.shape} (one PSD value per frequency); got {np.shape(c)}")
+        _check_shape(f"curves[{i}]", c, keep.shape, "one PSD value per frequency of freqs")
     values = np.concatenate([np.asarray(c, dtype=float)[keep] for c in curves]) if len(curves) else np.zeros(0)
     values = values[np.isfinite(values) & (values > 0)]
     if not values.size:
@@ -193,6 +203,9 @@ def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Seque
     the estimate's frequencies). ``style_of``: run name -> the run whose line style it takes.
     ``ylim``: the y-axis limits (:func:`psd_limits` for figures shared with another); default
     matplotlib's."""
+    freqs = np.asarray(freqs)
+    for run, psd in runs.items():
+        _check_shape(f"runs[{run!r}]", psd, freqs.shape, "one PSD value per frequency of freqs")
     if fmax is None:
         fmax = _psd_fmax(freqs, mode_freqs_hz)
     fig, ax = plt.subplots(figsize=(7.5, 3.6))
@@ -384,8 +397,7 @@ def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[flo
     darker), the median a solid line, and any other percentile a dashed line of its own.
     """
     pcts = [float(p) for p in percentiles]
-    if np.shape(bands) != (len(pcts), np.shape(t)[0]):
-        raise ValueError(f"bands must have shape (len(percentiles), len(t)) = ({len(pcts)}, {np.shape(t)[0]}); got {np.shape(bands)}")
+    _check_shape("bands", bands, (len(pcts), np.shape(t)[0]), "len(percentiles), len(t)")
     fig, ax = plt.subplots(figsize=(7.5, 3.8))
     paired = sorted(p for p in pcts if p < 50 and 100 - p in pcts)  # outermost first
     for i, p in enumerate(paired):
@@ -480,9 +492,18 @@ def stability_chart(
         crossings), drawn as a line.
       point: (k, tau_s) operating point to mark (the paper's 55, 0.005).
       title: figure title.
+
+    Raises:
+      ValueError: naming an array whose shape does not fit ``k`` and ``tau_s``.
     """
     k, tau_ms = np.asarray(k, float), 1e3 * np.asarray(tau_s, float)
     radius = np.asarray(spectral_radius, float)
+    grid = (tau_ms.size, k.size)
+    _check_shape("spectral_radius", radius, grid, "[n_tau, n_k]: one row per delay of tau_s")
+    if rightmost_real is not None:
+        _check_shape("rightmost_real", rightmost_real, grid, "[n_tau, n_k], as spectral_radius")
+    if first_delay_s is not None:
+        _check_shape("first_delay_s", first_delay_s, (k.size,), "one delay per gain of k")
     sampled = radius < 1
     have_cont = rightmost_real is not None and np.any(np.isfinite(rightmost_real))
     fig, ax = plt.subplots(figsize=(7.5, 5.0))

@@ -437,7 +437,7 @@ def test_percentile_bands_pair_each_percentile_with_its_mirror():
         fig = plotting.percentile_bands(t, bands, percentiles, "y", "title")
         assert sorted(fig.axes[0].get_legend_handles_labels()[1]) == sorted(labels)
         plt.close(fig)
-    with pytest.raises(ValueError, match=r"bands must have shape \(len\(percentiles\), len\(t\)\) = \(2, 5\)"):
+    with pytest.raises(ValueError, match=r"bands must have shape \(2, 5\) \(len\(percentiles\), len\(t\)\)"):
         plotting.percentile_bands(t, np.zeros((3, 5)), (10.0, 90.0), "y", "title")
 
 

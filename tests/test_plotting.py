@@ -200,6 +200,26 @@ def test_figures_name_empty_or_missing_data():
         plotting.responses(t, {"dfs": {"hub": t}}, [], {}, "x")
 
 
+def test_figures_refuse_arrays_that_do_not_fit_their_axes():
+    """A signal cut short was drawn against the wrong times, and a PSD or a chart of another
+    shape failed inside matplotlib (IndexError, TypeError), naming nothing."""
+    t = np.linspace(0.0, 1.0, 20)
+    with pytest.raises(ValueError, match=r"runs\['dfs'\]\['tip'\] must have shape \(20,\) \(one value per time of t\); got \(10,\)"):
+        plotting.responses(t, {"dfs": {"tip": t[:10]}}, [("tip", "m")], {}, "x")
+    freqs = np.linspace(0.0, 500.0, 11)
+    with pytest.raises(ValueError, match=r"runs\['a'\] must have shape \(11,\) \(one PSD value per frequency of freqs\); got \(5,\)"):
+        plotting.psds(freqs, {"a": np.ones(5)}, [13.0], "y", "t")
+    k, tau = np.linspace(10.0, 100.0, 4), np.linspace(1e-3, 8e-3, 3)
+    radius = np.full((3, 4), 0.9)
+    with pytest.raises(ValueError, match=r"spectral_radius must have shape \(3, 4\) \(\[n_tau, n_k\]: one row per delay of tau_s\); got \(4, 3\)"):
+        plotting.stability_chart(k, tau, radius.T)
+    with pytest.raises(ValueError, match=r"rightmost_real must have shape \(3, 4\)"):
+        plotting.stability_chart(k, tau, radius, rightmost_real=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match=r"first_delay_s must have shape \(4,\) \(one delay per gain of k\); got \(3,\)"):
+        plotting.stability_chart(k, tau, radius, first_delay_s=np.ones(3))
+    plotting.stability_chart(k, tau, radius, rightmost_real=-np.ones((3, 4)), first_delay_s=np.ones(4))  # the shapes that fit draw
+
+
 def test_percentile_bands_end_the_time_axis_when_the_motion_settles():
     # montecarlo's tip_bands.png drew 3 s while the response was over in 0.4 s
     t = np.arange(3000) * 1e-3
@@ -321,7 +341,7 @@ def test_psd_limits_hold_every_curve_up_to_the_drawn_frequency():
     assert lo == pytest.approx(1e-12 / 10**0.2) and hi == pytest.approx(1e-8 * 10**0.2)  # 5 % of the 4 decades each side
     assert plotting.psd_limits(freqs, [a], [200.0]) == pytest.approx((1e-8 / 10**0.4, 10**0.4))  # up to 300 Hz: 8 decades
     assert plotting.psd_limits(freqs, [np.zeros(501)], [13.3]) is None
-    with pytest.raises(ValueError, match=r"curves\[1\] must have the shape of freqs \(501,\) \(one PSD value per frequency\); got \(500,\)"):
+    with pytest.raises(ValueError, match=r"curves\[1\] must have shape \(501,\) \(one PSD value per frequency of freqs\); got \(500,\)"):
         plotting.psd_limits(freqs, [a, b[:500]], [13.3])
     ax = plotting.psds(freqs, {"open_loop": a, "dfs": b}, [13.3], "PSD", "t", ylim=(1e-13, 1e-7)).axes[0]
     assert ax.get_ylim() == pytest.approx((1e-13, 1e-7))
