@@ -51,6 +51,11 @@ class BeamParams(NamedTuple):
       hub_inertia_kg_m2: hub inertia I_H (kg m^2).
       payload_mass_kg: tip payload mass m_p (kg); 0 in the paper.
       payload_inertia_kg_m2: tip payload rotary inertia J_p about the tip (kg m^2); 0 in the paper.
+        With J_p > 0 the assumed-mode frequencies converge slowly, about as 1/n: every
+        clamped-free shape has zero bending moment at the tip, which J_p's does not. The
+        first three of ``exact_natural_frequencies_hz`` are 0.07, 0.6 and 5.8 % high with 3
+        modes at 1e-4 kg m^2, 0.5 % high with 30; at 1 kg m^2 16-20 % with 3 and 0.3-0.4 %
+        with 100. A tip mass alone converges fast (1e-5 with 20 modes).
       damping_ratio: modal damping ratio given to the two flexible modes of the 2-mode model
         of these parameters, from which the Rayleigh coefficients are derived (jaxflex
         convention; the paper gives no values). Ignored when both Rayleigh fields are set.
@@ -420,7 +425,8 @@ def exact_natural_frequencies_hz(params: BeamParams, n_freqs: int = 2) -> np.nda
     Roots of the exact frequency equation of the Euler-Bernoulli beam clamped to a free
     hub (see ``_exact_determinant``), found by a sign-change scan in lambda = beta L and
     bisection, in NumPy float64. Not differentiable: it is the reference that the
-    assumed-mode frequencies converge to from above as n grows.
+    assumed-mode frequencies converge to from above as n grows (slowly with a tip rotary
+    inertia: see ``BeamParams.payload_inertia_kg_m2``).
     """
     n_freqs = checks.integer("n_freqs", n_freqs, high=MAX_MODES)
     check_beam_params(params)
