@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import re
 import signal
@@ -172,9 +173,9 @@ def _parser() -> argparse.ArgumentParser:
     mc.add_argument("--controller", choices=NAMES, default=None, help="controller (default dfs+fuzzy)")
     mc.add_argument("--params", default=None, help="tuned.json from `jaxflex tune` (default: the paper's gains)")
     mc.add_argument("--scenarios", type=_positive_int, default=None, help="number of scenarios N (default 10000)")
-    mc.add_argument("--chunk", type=_positive_int, default=None, help="scenarios per chunk; memory grows with it (default 4096)")
+    mc.add_argument("--chunk", type=_positive_int, default=None, help="scenarios per chunk; memory grows with it (default 4096; with --resume, the folder's)")
     mc.add_argument("--seed", type=int, default=None, help="PRNG seed (default 0)")
-    mc.add_argument("--unroll", type=_positive_int, default=None, help="samples per compiled loop iteration, 1-64 (default 1); on a GPU 8 runs a chunk about 3x as fast after 5-6 s more compiling, which pays in runs of millions of scenarios; slower on a CPU")
+    mc.add_argument("--unroll", type=_positive_int, default=None, help="samples per compiled loop iteration, 1-64 (default 1; with --resume, the folder's); on a GPU 8 runs a chunk about 3x as fast after 5-6 s more compiling, which pays in runs of millions of scenarios; slower on a CPU")
     mc.add_argument("--config", default=None, help="TOML file: MCConfig keys (percentiles, n_modes, ...) and [scenarios] and [beam] (your arm) tables")
     mc.add_argument("--out", default="montecarlo", help="output folder (default ./montecarlo)")
     mc.add_argument("--resume", action="store_true", help="continue a run in OUT, skipping the chunks already written")
@@ -509,6 +510,22 @@ def _tune(args: argparse.Namespace) -> int:
     return 0
 
 
+def _montecarlo_folder_settings(out: str) -> dict[str, int]:
+    """The chunk and unroll that the Monte Carlo run in ``out`` recorded, for a resume that
+    sets neither (a resume asked for the same --chunk and --unroll again, and refused the
+    defaults); empty when the folder has no readable record, which the run itself names."""
+    from jaxflex.montecarlo import META
+
+    try:
+        with open(os.path.join(out, META), encoding="utf-8") as f:
+            previous = json.load(f)
+    except (OSError, ValueError):
+        return {}
+    config = previous.get("config") if isinstance(previous, dict) else None
+    found = {"chunk": previous.get("chunk") if isinstance(previous, dict) else None, "unroll": config.get("unroll") if isinstance(config, dict) else None}
+    return {key: value for key, value in found.items() if isinstance(value, int) and not isinstance(value, bool)}
+
+
 def _montecarlo(args: argparse.Namespace) -> int:
     import dataclasses
     from collections.abc import Mapping
@@ -563,6 +580,9 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values.setdefault("beam", tuned.beam)  # the arm it was tuned for, and the model of it
         values.setdefault("n_modes", tuned.n_modes)
         values.setdefault("method", tuned.method)
+    if args.resume:  # what neither the options nor the config set: the folder's
+        for key, value in _montecarlo_folder_settings(args.out).items():
+            values.setdefault(key, value)
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed, "unroll": args.unroll}
     values.update({k: v for k, v in overrides.items() if v is not None})
     config = MCConfig(**values)

@@ -355,6 +355,14 @@ def test_cli_says_how_many_runs_did_not_settle(tmp_path, capsys):
     assert "diverged fraction 0" in printed
     assert json.loads((tmp_path / "o" / montecarlo.META).read_text())["config"]["unroll"] == 2  # --unroll reached the run
     assert "note: 3 of the 3 runs that did not diverge had not settled by the end of the 0.05 s horizon" in err
+    # a resume that sets neither --chunk nor --unroll takes the folder's (it compared the
+    # defaults, 4096 and 1, with them and was refused: 'changed: unroll: 2 -> 1')
+    assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "5", "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
+    meta = json.loads((tmp_path / "o" / montecarlo.META).read_text())
+    assert (meta["chunk"], meta["config"]["unroll"]) == (3, 2)
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["n_scenarios"] == 5
+    assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "5", "--out", str(tmp_path / "o"), "--no-progress", "--resume", "--unroll", "1"]) == 2
+    assert "changed: unroll: 2 -> 1" in capsys.readouterr().err  # one given is compared, not replaced
 
 
 def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
