@@ -146,6 +146,12 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
             f"got {scenario.noise.shape} (force and noise hold one row per sample)"
         )
     plant_batch = tuple(plant.Ad.shape[:-2])
+    if batch and not plant_batch and scenario.plant is not None:  # a hand-written Monte Carlo ran every scenario on the nominal plant, silently
+        raise ValueError(
+            "scenario.plant holds each scenario's plant uncertainty, which rollout does not apply to one plant shared by the batch: "
+            "pass batch_plant(params, n_modes, dt, method, scenario, plant) (jaxflex.scenarios) as plant, or scenario._replace(plant=None) "
+            "to run every scenario on this one"
+        )
     if plant_batch and plant_batch != batch:
         raise ValueError(f"a batch of plants {plant.Ad.shape} needs a batch of as many scenarios (scenario.x0 of shape {plant_batch + (n_x,)}); got scenario.x0 of shape {scenario.x0.shape}")
     for name, rows, cols in (("Bd", n_x, 1), ("Ed", n_x, 1), ("C", 2, n_x), ("Cz", 3, n_x)):
@@ -206,7 +212,8 @@ def rollout(
         ``noise`` [T, 2]), or a batch of B: ``x0`` [B, n_x], with ``force`` [B, T, 1] and
         ``noise`` [B, T, 2] or shared by the batch ([T, 1], [T, 2]). Its ``plant``
         perturbation is not applied here: pass the perturbed plant,
-        ``scenarios.scenario_plant(...)`` (``vmap`` it for a batch), as ``plant``.
+        ``scenarios.scenario_plant(...)`` (``scenarios.batch_plant(...)`` for a batch), as
+        ``plant``; a batch that holds perturbations with one shared plant is refused.
       output: ``"trajectory"`` (every sample, memory O(T)) or ``"metrics"`` (running
         metrics only, memory O(1) in T).
       settling_band: band of the running settling time, as a fraction of the peak, in (0, 1):

@@ -34,7 +34,8 @@ class Scenario(NamedTuple):
       force: [T, 1] transverse tip force (N), held over each sample.
       noise: [T, 2] additive sensor noise on the measured hub angle (rad) and velocity (rad/s).
       plant: the scenario's plant uncertainty, or None for the nominal plant. ``rollout``
-        does not apply it: build the perturbed plant with ``scenario_plant`` and pass it.
+        does not apply it: build the perturbed plant with ``scenario_plant`` (a batch's with
+        ``batch_plant``) and pass it.
     """
 
     x0: jax.Array

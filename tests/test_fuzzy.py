@@ -444,8 +444,10 @@ def test_validation():
     check(fuzzy_params(dtype=jnp.bfloat16))
     with pytest.raises(ValueError, match=r"k2 must be a real number; got True"):
         check(fuzzy_params()._replace(k2=True))
-    with pytest.raises(ValueError, match=r"angle_centres must be a real number or an array"):
+    with pytest.raises(ValueError, match=r"angle_centres must be an array \(jnp.asarray\(\.\.\.\), or build the parameters with fuzzy_params\(centres=\.\.\.\)\); got tuple"):
         check(fuzzy_params()._replace(angle_centres=("a",) * 5))
+    with pytest.raises(ValueError, match=r"angle_centres must be a real number or an array"):
+        check(fuzzy_params()._replace(angle_centres=np.array(["a"] * 5)))
     # the public surface and memberships check the centres too (decreasing ones gave 0 silently)
     with pytest.raises(ValueError, match=r"torque_centres must have shape \(5,\).*strictly increasing"):
         fuzzy_surface(fuzzy_params()._replace(torque_centres=jnp.array([1.0, 0.5, 0.0, -0.5, -1.0])), 0.3, 0.1)

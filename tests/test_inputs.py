@@ -148,3 +148,15 @@ def test_paper_scenario_of_a_batch_of_plants():
         np.testing.assert_allclose(together.x[i], rollout(one, dfs(), DFSParams(), paper_scenario(one, 0.05)).x, rtol=1e-5, atol=1e-12)
     with pytest.raises(ValueError, match=r"the batch of plants has sample times from 0.001 to 0.002 s; they must share one dt"):
         paper_scenario(plants._replace(dt=jnp.asarray([1e-3, 2e-3, 1e-3])))
+
+
+def test_a_batch_with_plant_uncertainty_on_one_shared_plant_is_refused():
+    """A hand-written Monte Carlo, rollout(nominal, ..., sampled batch), ran every scenario on
+    the nominal plant and dropped the drawn moduli, densities and payloads silently."""
+    nominal = discretize(make_plant(), 1e-3)
+    batch = sample_scenarios(ScenarioSpec(horizon_s=0.01, youngs_modulus_rel=0.1), jax.random.key(0), 2)
+    with pytest.raises(ValueError, match=r"scenario.plant holds each scenario's plant uncertainty, which rollout does not apply to one plant shared by the batch: pass batch_plant\("):
+        rollout(nominal, dfs(), DFSParams(), batch)
+    plants = batch_plant(BeamParams(), 2, 1e-3, "rk4", batch, nominal)
+    assert rollout(plants, dfs(), DFSParams(), batch).x.shape == (2, 10, 6)
+    assert rollout(nominal, dfs(), DFSParams(), batch._replace(plant=None)).x.shape == (2, 10, 6)
