@@ -54,7 +54,7 @@ class BeamParams(NamedTuple):
         With J_p > 0 the assumed-mode frequencies converge slowly, about as 1/n: every
         clamped-free shape has zero bending moment at the tip, which J_p's does not. The
         first three of ``exact_natural_frequencies_hz`` are 0.07, 0.6 and 5.8 % high with 3
-        modes at 1e-4 kg m^2, 0.5 % high with 30; at 1 kg m^2 16-20 % with 3 and 0.3-0.4 %
+        modes at 1e-4 kg m^2, 0.005, 0.08 and 0.5 % high with 30; at 1 kg m^2 16-20 % with 3 and 0.3-0.4 %
         with 100. A tip mass alone converges fast (1e-5 with 20 modes).
       damping_ratio: modal damping ratio given to the two flexible modes of the 2-mode model
         of these parameters, from which the Rayleigh coefficients are derived (jaxflex

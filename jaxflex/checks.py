@@ -33,7 +33,7 @@ def _plain(name: str, value: Any) -> Any:
     else as it is; a traced value is refused by ``name``: an option is a constant of the run."""
     if isinstance(value, jax.core.Tracer):
         raise ValueError(f"{name} must be a concrete number, not traced under jit, vmap or grad; got {value!r}")
-    if isinstance(value, (np.generic, np.ndarray, jax.Array)) and not isinstance(value, jax.core.Tracer) and np.shape(value) == ():
+    if isinstance(value, (np.generic, np.ndarray, jax.Array)) and np.shape(value) == ():
         return fileio.shortest(value)
     return value
 

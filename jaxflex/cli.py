@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import re
 import signal
@@ -510,22 +509,6 @@ def _tune(args: argparse.Namespace) -> int:
     return 0
 
 
-def _montecarlo_folder_settings(out: str) -> dict[str, int]:
-    """The chunk and unroll that the Monte Carlo run in ``out`` recorded, for a resume that
-    sets neither (a resume asked for the same --chunk and --unroll again, and refused the
-    defaults); empty when the folder has no readable record, which the run itself names."""
-    from jaxflex.montecarlo import META
-
-    try:
-        with open(os.path.join(out, META), encoding="utf-8") as f:
-            previous = json.load(f)
-    except (OSError, ValueError):
-        return {}
-    config = previous.get("config") if isinstance(previous, dict) else None
-    found = {"chunk": previous.get("chunk") if isinstance(previous, dict) else None, "unroll": config.get("unroll") if isinstance(config, dict) else None}
-    return {key: value for key, value in found.items() if isinstance(value, int) and not isinstance(value, bool)}
-
-
 def _montecarlo(args: argparse.Namespace) -> int:
     import dataclasses
     from collections.abc import Mapping
@@ -547,7 +530,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             raise ValueError(f"--distributed: {err} Pass --coordinator HOST:PORT, --num-processes and --process-id, or run under a cluster "
                              "JAX detects (SLURM, Open MPI)") from None
     from jaxflex.beam import params_from_mapping
-    from jaxflex.montecarlo import MCConfig, run_montecarlo
+    from jaxflex.montecarlo import MCConfig, recorded_settings, run_montecarlo
     from jaxflex.report import format_value, load_tuned
     from jaxflex.scenarios import ScenarioSpec
     from tuning.tuner import TuneConfig
@@ -581,8 +564,10 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values.setdefault("n_modes", tuned.n_modes)
         values.setdefault("method", tuned.method)
     if args.resume:  # what neither the options nor the config set: the folder's
-        for key, value in _montecarlo_folder_settings(args.out).items():
-            values.setdefault(key, value)
+        taken = {key: value for key, value in recorded_settings(args.out).items() if key not in values and getattr(args, key) is None}
+        values.update(taken)
+        if taken:
+            print(f"montecarlo: --resume: {' and '.join(f'{key} {value}' for key, value in taken.items())}, as the run in {args.out} recorded", file=sys.stderr)
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed, "unroll": args.unroll}
     values.update({k: v for k, v in overrides.items() if v is not None})
     config = MCConfig(**values)

@@ -397,13 +397,31 @@ def _load_chunk(path: str, chunk: int, n_modes: int) -> dict[str, np.ndarray]:
     return rows
 
 
-def _check_resume(meta_path: str, meta: dict[str, Any], n_scenarios: int) -> None:
-    """Refuse to resume a folder written by another configuration, naming what changed."""
+def _read_meta(meta_path: str) -> Any:
+    """The folder's record (``META``), as JSON; ValueError when it cannot be read."""
     try:
         with open(meta_path, encoding="utf-8") as f:
-            previous = json.load(f)
+            return json.load(f)
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"--resume: cannot read {meta_path} ({err}); start a new run in another --out") from None
+
+
+def recorded_settings(out_dir: str | os.PathLike) -> dict[str, int]:
+    """The ``chunk`` and ``unroll`` that the run in ``out_dir`` recorded, those it holds (none
+    when it has no readable record, which ``run_montecarlo`` names): ``jaxflex montecarlo
+    --resume`` runs at them unless told otherwise."""
+    try:
+        previous = _read_meta(os.path.join(os.fspath(out_dir), META))
+    except ValueError:
+        return {}
+    config = previous.get("config") if isinstance(previous, dict) else None
+    found = {"chunk": previous.get("chunk") if isinstance(previous, dict) else None, "unroll": config.get("unroll") if isinstance(config, dict) else None}
+    return {key: value for key, value in found.items() if isinstance(value, int) and not isinstance(value, bool)}
+
+
+def _check_resume(meta_path: str, meta: dict[str, Any], n_scenarios: int) -> None:
+    """Refuse to resume a folder written by another configuration, naming what changed."""
+    previous = _read_meta(meta_path)
     before = previous.get("config", {}) if isinstance(previous, dict) and isinstance(previous.get("config"), dict) else {}
     # a folder written while _SUMMARY_ONLY still counted has them in its config and its hash
     same = isinstance(previous, dict) and meta["fingerprint"] in (previous.get("fingerprint"), fileio.digest({k: v for k, v in before.items() if k not in _SUMMARY_ONLY}))

@@ -116,6 +116,15 @@ class RunMetrics(NamedTuple):
 OUTPUTS = ("trajectory", "metrics")
 
 
+def _wider(value: Any, dtype: Any) -> bool:
+    """Whether ``value`` is a float array that would widen arithmetic in ``dtype``: not weakly
+    typed (a Python float adapts), and canonical (without x64 JAX reads a NumPy float64, a
+    gain from ``np.linspace``, as float32)."""
+    value_dtype = getattr(value, "dtype", None)
+    weak = getattr(getattr(value, "aval", value), "weak_type", False)
+    return value_dtype is not None and jnp.issubdtype(value_dtype, jnp.floating) and not weak and jnp.promote_types(jax.dtypes.canonicalize_dtype(value_dtype), dtype) != dtype
+
+
 def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settling_band: Any, mode_freqs_hz: Any) -> tuple[tuple[int, ...], float]:
     """Shapes and dtypes of the loop's inputs, and the metrics' options, named when wrong;
     returns the batch shape (``()`` or ``(B,)``, from ``scenario.x0``) and ``settling_band``
@@ -168,9 +177,7 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
             raise ValueError(f"scenario.{name} must be finite; got inf or NaN")
     for path, leaf in jax.tree_util.tree_leaves_with_path(params):
         leaf_dtype = getattr(leaf, "dtype", None)
-        weak = getattr(getattr(leaf, "aval", leaf), "weak_type", False)
-        # canonicalize: without x64 JAX reads a NumPy float64 (a gain from np.linspace) as float32
-        if leaf_dtype is not None and jnp.issubdtype(leaf_dtype, jnp.floating) and not weak and jnp.promote_types(jax.dtypes.canonicalize_dtype(leaf_dtype), dtype) != dtype:
+        if _wider(leaf, dtype):
             raise ValueError(
                 f"params{jax.tree_util.keystr(path)} is {leaf_dtype}, wider than the plant's {dtype}: "
                 f"build the parameters in {dtype} (e.g. by_name(..., dtype=...))"
@@ -296,8 +303,8 @@ def rollout(
     state1, u0 = step(params, init(params, y0), y0)
     if jnp.shape(u0) != (1,) + batch:
         raise ValueError(f"the controller's step must return the torque u with shape {(1,) + batch} (N*m{', a trailing batch axis when batched' if batch else ''}); got shape {jnp.shape(u0)}")
-    if jnp.result_type(u0) != y0.dtype:  # else lax.scan refuses the carry with a message that names no controller
-        raise ValueError(f"the controller's step must return the torque u in the plant's dtype {y0.dtype} (build its constants in it, or cast u with .astype(y.dtype)); got {jnp.result_type(u0)}")
+    if _wider(u0, y0.dtype):  # else lax.scan refuses the carry with a message that names no controller
+        raise ValueError(f"the controller's step returns the torque u in {u0.dtype}, wider than the plant's {y0.dtype}: build its constants in the plant's dtype, or cast u with .astype(y.dtype)")
     # noise[k + 1] for iteration k; the last iteration's controller step (its u[T] is never
     # used) sees zero noise.
     inputs = (force, jnp.concatenate([noise[1:], jnp.zeros_like(noise[:1])]))

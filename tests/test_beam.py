@@ -127,7 +127,7 @@ def test_a_tip_rotary_inertia_slows_convergence_to_about_one_over_n():
     heavy, massive = BeamParams(payload_inertia_kg_m2=1.0), BeamParams(payload_mass_kg=0.1)
     exact = beam.exact_natural_frequencies_hz(heavy, 1)[0]
     error = {n: float(beam.natural_frequencies_hz(heavy, n)[0]) / exact - 1 for n in (10, 100)}
-    assert 0.15 < error[10] * 10 / (error[100] * 100) < 1.5 and 0 < error[100] < 5e-3  # n * error about constant
+    assert 0.7 < error[10] * 10 / (error[100] * 100) < 1.4 and 0 < error[100] < 5e-3  # n * error about constant (1/sqrt(n): 0.32)
     mass_error = float(beam.natural_frequencies_hz(massive, 20)[0]) / beam.exact_natural_frequencies_hz(massive, 1)[0] - 1
     assert 0 < mass_error < 1e-4
 

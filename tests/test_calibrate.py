@@ -206,7 +206,7 @@ def test_cli_notes_a_calibrated_arm_that_still_misses_the_measurements(tmp_path,
     assert abs(float(row.group(1))) > 5  # the table's own error for mode 2, the worst
     assert (
         f"note: the calibrated arm still misses mode 2 by {abs(float(row.group(1))):.3g} % (over 5 %): fitting youngs_modulus_pa cannot match these "
-        "frequencies; check --hub (hub; the arm was held clamped?), that they are the first modes in order, and their units\n"
+        "frequencies; check the hub condition (--hub: was the arm held clamped?), that they are the first modes in order, and their units\n"
     ) in captured.err
     assert cli.main(["calibrate", "--freqs", "13.32", "36.47", "--out", str(tmp_path / "b")]) == 0
     assert "still misses" not in capsys.readouterr().err

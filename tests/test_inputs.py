@@ -79,7 +79,7 @@ def _plant_and_scenario():
     [
         # a DFSParams, a NamedTuple of two fields, passed for the pair: 'params must be a DFSParams; got float 55.0'
         (lambda: rollout(*_plant_and_scenario()[:1], combine(dfs(), fuzzy()), DFSParams(), _plant_and_scenario()[1]),
-         r"params of a combined controller must be a pair \(first's params, second's params\), e\.g\. \(DFSParams\(\.\.\.\), fuzzy_params\(\)\); got DFSParams"),
+         r"params of a combined controller must be a pair \(first's params, second's params\), as \(DFSParams\(\.\.\.\), fuzzy_params\(\)\) for combine\(dfs\(\), fuzzy\(\)\); got DFSParams"),
         # tuple centres passed check() and failed in jnp.result_type with a TypeError
         (lambda: rollout(*_plant_and_scenario()[:1], fuzzy(), FuzzyParams(1.0, 0.3, 1.0, (-1.0, -0.5, 0.0, 0.5, 1.0), *(jnp.linspace(-1.0, 1.0, 5),) * 2), _plant_and_scenario()[1]),
          r"angle_centres must be an array \(jnp.asarray\(\.\.\.\), or build the parameters with fuzzy_params\(centres=\.\.\.\)\); got tuple"),
@@ -129,8 +129,14 @@ def test_a_controllers_torque_in_another_dtype_is_refused_by_name():
     """lax.scan refused the carry with a message that named no controller."""
     plant, scenario = _float32_plant_and_scenario()
     wide = Controller(lambda p, y: (), lambda p, s, y: (s, (-p * y[:1]).astype(jnp.float64)), lambda p: None)
-    with pytest.raises(ValueError, match=r"the controller's step must return the torque u in the plant's dtype float32 .*; got float64"):
+    with pytest.raises(ValueError, match=r"the controller's step returns the torque u in float64, wider than the plant's float32: build its constants"):
         rollout(plant, wide, 1.0, scenario)
+    # a narrower torque, or a weakly typed one, ran before the check and still does
+    narrow = Controller(lambda p, y: (), lambda p, s, y: (s, (-p * y[:1]).astype(jnp.bfloat16)), lambda p: None)
+    weak = Controller(lambda p, y: (), lambda p, s, y: (s, jax.lax.full((1,), 0.0)), lambda p: None)
+    assert rollout(plant, narrow, 1.0, scenario).x.dtype == jnp.float32
+    assert rollout(plant, weak, 1.0, scenario).x.dtype == jnp.float32
+    assert rollout(discretize(make_plant(), 1e-3), narrow, 1.0, paper_scenario(discretize(make_plant(), 1e-3), 0.01)).x.dtype == jnp.float64
 
 
 def test_paper_scenario_of_a_batch_of_plants():
@@ -148,6 +154,11 @@ def test_paper_scenario_of_a_batch_of_plants():
         np.testing.assert_allclose(together.x[i], rollout(one, dfs(), DFSParams(), paper_scenario(one, 0.05)).x, rtol=1e-5, atol=1e-12)
     with pytest.raises(ValueError, match=r"the batch of plants has sample times from 0.001 to 0.002 s; they must share one dt"):
         paper_scenario(plants._replace(dt=jnp.asarray([1e-3, 2e-3, 1e-3])))
+    for dt in (jnp.asarray(np.nan), jnp.asarray([1e-3, np.nan, 1e-3])):  # a NaN dt is named as such, not as a batch's spread
+        with pytest.raises(ValueError, match=r"^dt must be a finite number of seconds > 0; got nan$"):
+            paper_scenario(nominal._replace(dt=dt))
+    with pytest.raises(ValueError, match=r"plant must hold at least one plant; got an empty batch"):
+        paper_scenario(jax.tree.map(lambda a: a[:0], plants))
 
 
 def test_a_batch_with_plant_uncertainty_on_one_shared_plant_is_refused():

@@ -344,6 +344,13 @@ def test_spectral_radius_of_a_fractional_delay(plant):
         assert float(st.spectral_radius(dplant, PAPER_K, whole)) == float(st.spectral_radius(dplant, PAPER_K, round(float(whole))))
     with pytest.raises(ValueError, match=r"^delay_steps must be an integer >= 1 \(samples\); got 0$"):
         st.spectral_radius(dplant, PAPER_K, 0)
+    for bad in (0.0, -2.0, 1e-7):  # quoted as given, not as rounded ('got 0' for 1e-7)
+        with pytest.raises(ValueError, match=rf"^delay_steps must be an integer >= 1 \(samples\); got {bad!r}$"):
+            st.spectral_radius(dplant, PAPER_K, bad)
+    # the grids read tau / dt alike (they refused 3.0, and an int32 cast would have cut 2.9999999999999996 to 2)
+    np.testing.assert_array_equal(st.sampled_radius_grid(dplant, [PAPER_K], [0.003 / 0.001, 5.0]), st.sampled_radius_grid(dplant, [PAPER_K], [3, 5]))
+    with pytest.raises(ValueError, match=r"^delay_steps must be an integer >= 1 \(samples\); got 2.5$"):
+        st.sampled_radius_grid(dplant, [PAPER_K], [2.5])
 
 
 def test_chart_agrees_with_simulation(plant):
@@ -447,7 +454,7 @@ def test_grids_and_root_counts_name_bad_values(plant):
         (lambda: st.unstable_root_count(result, [float("nan")]), r"tau_s must be in \(0, tau_max_s = 0.05\] s"),
         (lambda: st.unstable_root_count(result, "0.01"), "tau_s must be a real number or an array of real numbers; got '0.01'"),
         (lambda: st.unstable_root_count(result, []), "tau_s must hold at least one delay"),
-        (lambda: st.sampled_radius_grid(dplant, [PAPER_K], []), r"k_values and delay_steps must be non-empty 1-D arrays; got shapes \(1,\), \(0,\)"),
+        (lambda: st.sampled_radius_grid(dplant, [PAPER_K], []), r"k_values and delay_steps must be non-empty 1-D arrays \(the grid's axes\); got shapes \(1,\), \(0,\)"),
         (lambda: st.stability_chart(plant, ["a"], [5]), r"k_values must be a real number or an array of real numbers; got \['a'\]"),
     ):
         with pytest.raises(ValueError, match=match):

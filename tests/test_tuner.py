@@ -1007,3 +1007,22 @@ def test_a_pade_or_cubic_run_reports_and_penalises_its_own_loop(tmp_path, capsys
         radii = [float(jnp.max(jnp.abs(jnp.linalg.eigvals(m)))) for m in loops]
     value = float(cubic.dfs_log_radius(DFSParams(55.0, 0.0043)))
     assert value == pytest.approx(math.log(radii[0]), rel=1e-9) and value != pytest.approx(math.log(radii[1]), rel=1e-6)
+
+
+def test_a_run_resumed_after_its_last_update_ends_its_log_at_100_percent(tmp_path, capsys):
+    """Stopped after the last update's checkpoint, before the final point was scored: the
+    resumed run's --no-progress line counted the final point as an update ('3 of 2 updates
+    (150 %)')."""
+    config = TuneConfig(controller="dfs", steps=2, checkpoint_every=2, **SMALL)
+
+    def interrupt(step):
+        if step == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        tune(config, tmp_path, progress=False, on_step=interrupt)
+    capsys.readouterr()
+    state = tune(config, tmp_path, resume=True, progress=False)
+    err = capsys.readouterr().err
+    assert re.search(r"\ntune: 2 of 2 updates \(100 %\) after \d+ s; loss (\S+), best held-out", err) and "3 of 2" not in err, err
+    assert state["history"][-1]["step"] == 2

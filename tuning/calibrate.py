@@ -119,12 +119,12 @@ class Calibration(NamedTuple):
             notes.append(f"the measured frequencies determine {', '.join(loose)} poorly (over 10 % per 1 % error in them): fit fewer fields, or measure more modes")
         moved = [name for name, start in zip(self.fit, self.start) if not 0.1 <= float(getattr(self.beam, name)) / start <= 10]
         if moved:
-            notes.append(f"{', '.join(moved)} moved by more than 10x from the starting arm: check the units (Hz, not rad/s; SI constants in [beam]) and --hub (hub)")
+            notes.append(f"{', '.join(moved)} moved by more than 10x from the starting arm: check the units (Hz, not rad/s; SI constants in [beam]) and the hub condition (--hub)")
         errors = abs(self.error_after_percent)
         if errors.max() > MISFIT_PERCENT:  # free-hub frequencies fitted as clamped left -34 % and +51 % with no word
             worst = int(errors.argmax())
             notes.append(f"the calibrated arm still misses mode {worst + 1} by {errors[worst]:.3g} % (over {MISFIT_PERCENT:g} %): fitting {', '.join(self.fit)} "
-                         f"cannot match these frequencies; check --hub (hub; the arm was held {self.hub}?), that they are the first modes in order, and their units")
+                         f"cannot match these frequencies; check the hub condition (--hub: was the arm held {self.hub}?), that they are the first modes in order, and their units")
         return notes
 
     def as_dict(self) -> dict[str, Any]:

@@ -506,7 +506,8 @@ def _tune_locked(
                     bar.close()
                     bar = None
                 if heartbeat is not None:  # its last line, withheld at the last update, has the final point's scores
-                    heartbeat.update(1, f"; loss {row['loss']:.4g}, best held-out {state['best_val']:.4g}")
+                    # (a run resumed from a checkpoint of the last update has counted it already)
+                    heartbeat.update(1 if heartbeat.done < config.steps else 0, f"; loss {row['loss']:.4g}, best held-out {state['best_val']:.4g}")
                 continue
             if progress and bar is None:
                 # opened after this process's first step, which compiled: timed with it, the

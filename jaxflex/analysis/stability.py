@@ -126,6 +126,25 @@ def _check_delay_steps(delay_steps: int, name: str = "delay_steps") -> int:
     return checks.integer(name, delay_steps, unit="samples")
 
 
+def _whole_delay(delay_steps: ArrayLike) -> int:
+    """A delay of whole samples >= 1 as an int: an integer, or a float within
+    ``WHOLE_SAMPLE_RTOL`` of one, as ``tau_s / dt`` gives it (``0.003 / 0.001 =
+    2.9999999999999996``); else ValueError naming ``delay_steps`` as given."""
+    arr = np.asarray(delay_steps)
+    if arr.ndim == 0 and arr.dtype.kind == "f" and np.isfinite(arr) and whole_samples(float(arr)) and round(float(arr)) >= 1:
+        return int(round(float(arr)))
+    return _check_delay_steps(arr.item() if arr.ndim == 0 and arr.dtype.kind in "iu" else delay_steps)
+
+
+def _grid_axes(**axes: ArrayLike) -> list[np.ndarray]:
+    """The named grid axes as arrays of real numbers, each non-empty and 1-D (else ValueError
+    naming them all)."""
+    arrays = {name: checks.real_array(name, value) for name, value in axes.items()}
+    if any(a.ndim != 1 or a.size < 1 for a in arrays.values()):
+        raise ValueError(f"{' and '.join(arrays)} must be non-empty 1-D arrays (the grid's axes); got shapes {', '.join(str(a.shape) for a in arrays.values())}")
+    return list(arrays.values())
+
+
 def _check_n_cheb(n_cheb: int) -> int:
     return checks.integer("n_cheb", n_cheb, 2, unit="Chebyshev intervals")
 
@@ -596,16 +615,13 @@ def _check_sampled_args(k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None
         return _check_delay_steps(n_hist, "n_hist"), delay_steps
     arr = checks.real_array("delay_steps", delay_steps, scalar=True)
     if n_hist is None:
-        if arr.ndim == 0 and arr.dtype.kind == "f" and np.isfinite(arr) and whole_samples(float(arr)):
-            whole = _check_delay_steps(int(round(float(arr))))
-            return whole, whole
         try:
-            whole = _check_delay_steps(arr.item() if arr.ndim == 0 and arr.dtype.kind in "iu" else delay_steps)
-            return whole, whole
+            whole = _whole_delay(delay_steps)
         except ValueError as err:
             if arr.ndim == 0 and arr.dtype.kind == "f" and float(arr) >= 1:  # 5.5 samples: say where a fractional delay goes
                 raise ValueError(f"{err}; a fractional delay needs n_hist, the history length (an integer >= the delay)") from None
             raise
+        return whole, whole
     n_hist = _check_delay_steps(n_hist, "n_hist")
     if arr.ndim != 0 or not 1 <= float(arr) <= n_hist:
         raise ValueError(f"delay_steps must be a number of samples in [1, n_hist = {n_hist}] (fractional: read between samples by interpolation); got {delay_steps!r}")
@@ -807,11 +823,8 @@ def sampled_radius_grid(plant: DiscretePlant, k_values: ArrayLike, delay_steps: 
     """[n_tau, n_k] sampled spectral radii: one jitted ``vmap(vmap(...))`` over delays and gains
     (every delay padded to the longest history, so there is one compilation)."""
     check_sampled(plant)
-    delay_steps, k_values = checks.real_array("delay_steps", delay_steps), checks.real_array("k_values", k_values)
-    if k_values.ndim != 1 or delay_steps.ndim != 1 or k_values.size < 1 or delay_steps.size < 1:
-        raise ValueError(f"k_values and delay_steps must be non-empty 1-D arrays; got shapes {k_values.shape}, {delay_steps.shape}")
-    for d in delay_steps.tolist():
-        _check_delay_steps(d)
+    k_values, delay_steps = _grid_axes(k_values=k_values, delay_steps=delay_steps)
+    delay_steps = np.asarray([_whole_delay(d) for d in delay_steps.tolist()])
     for kv in k_values.tolist():
         check_gain(kv)
     dtype = plant.Ad.dtype
@@ -832,9 +845,7 @@ def rightmost_real_grid(plant: LinearPlant, k_values: ArrayLike, tau_s: ArrayLik
     non-empty 1-D ``k_values`` and ``tau_s`` (s)."""
     check_continuous(plant)
     m = _check_n_cheb(n_cheb)
-    shapes = (checks.real_array("k_values", k_values).shape, checks.real_array("tau_s", tau_s).shape)
-    if any(len(shape) != 1 or shape[0] < 1 for shape in shapes):
-        raise ValueError(f"k_values and tau_s must be non-empty 1-D arrays (the grid's axes); got shapes {shapes[0]}, {shapes[1]}")
+    _grid_axes(k_values=k_values, tau_s=tau_s)
     for kv in np.asarray(k_values).tolist():
         check_gain(kv)
     for t in np.asarray(tau_s).tolist():
@@ -866,17 +877,16 @@ def stability_chart(
     Args:
       plant: continuous-time plant.
       k_values: [n_k] gains (N*m/rad), finite.
-      delay_steps: [n_tau] delays in samples of dt (integers >= 1); tau = d dt.
+      delay_steps: [n_tau] delays in samples of dt (whole numbers >= 1, as for
+        ``spectral_radius``); tau = d dt.
       dt: sample time (s).
       method: discretisation of the sampled loop (``"zoh"`` or ``"rk4"``, as ``discretize``).
       n_cheb: Chebyshev intervals of the generator.
       continuous: also compute the continuous loop's rightmost root.
     """
     dplant = discretize(plant, dt, method)
-    k_values = checks.real_array("k_values", k_values).astype(np.float64)
-    delay_steps = checks.real_array("delay_steps", delay_steps)
-    if k_values.ndim != 1 or delay_steps.ndim != 1 or k_values.size < 1 or delay_steps.size < 1:
-        raise ValueError(f"k_values and delay_steps must be non-empty 1-D arrays; got shapes {k_values.shape}, {delay_steps.shape}")
+    k_values, delay_steps = _grid_axes(k_values=k_values, delay_steps=delay_steps)
+    k_values, delay_steps = k_values.astype(np.float64), np.asarray([_whole_delay(d) for d in delay_steps.tolist()])
     tau = delay_steps * float(dt)
     radius = np.asarray(sampled_radius_grid(dplant, k_values, delay_steps))
     if continuous:

@@ -167,7 +167,7 @@ def combine(first: Controller, second: Controller) -> Controller:
         if not (isinstance(params, tuple) and not hasattr(params, "_fields") and len(params) == 2):  # a NamedTuple of two fields is one part's
             raise ValueError(
                 "params of a combined controller must be a pair (first's params, second's params), "
-                f"e.g. (DFSParams(...), fuzzy_params()); got {type(params).__name__} {params!r}"
+                f"as (DFSParams(...), fuzzy_params()) for combine(dfs(), fuzzy()); got {type(params).__name__} {params!r}"
             )
         first.check(params[0])
         second.check(params[1])

@@ -243,7 +243,8 @@ def _check_centre_array(name: str, centres: jax.typing.ArrayLike, n_sets: int) -
     (concrete values only: traced ones pass). A tuple or list is refused: in a parameter
     pytree each of its numbers would be a leaf of its own, which the surface does not read."""
     if isinstance(centres, (tuple, list)):
-        raise ValueError(f"{name} must be an array (jnp.asarray(...), or build the parameters with fuzzy_params(centres=...)); got {type(centres).__name__} {centres!r}")
+        build = "" if name == "centres" else ", or build the parameters with fuzzy_params(centres=...)"  # memberships' own argument: no parameters
+        raise ValueError(f"{name} must be an array (jnp.asarray(...){build}); got {type(centres).__name__} {centres!r}")
     if not is_concrete(centres):
         return
     c = checks.real_array(name, centres)
