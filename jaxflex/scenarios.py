@@ -184,10 +184,10 @@ def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, d
         dts = np.asarray(plant.dt)
         if dts.size == 0:
             raise ValueError("plant must hold at least one plant; got an empty batch")
-        if dts.ndim and np.all(np.isfinite(dts)) and not np.all(dts == dts.flat[0]):
+        finite = bool(np.all(np.isfinite(dts)))  # a NaN dt is refused, as such, by the checks of dt below
+        if finite and not np.all(dts == dts.flat[0]):
             raise ValueError(f"paper_scenario: the batch of plants has sample times from {dts.min():.7g} to {dts.max():.7g} s; they must share one dt (the horizon's number of samples)")
-        bad = dts[~np.isfinite(dts)]  # refused, as such, by the checks of dt below
-        plant_dt = float(bad.flat[0]) if bad.size else float(fileio.shortest(dts.flat[0]))  # a float32 plant's 1 ms reads 0.001, not 0.0010000000474974513
+        plant_dt = float(fileio.shortest(dts.flat[0])) if finite else math.nan  # a float32 plant's 1 ms reads 0.001, not 0.0010000000474974513
     if dt is None and isinstance(plant, DiscretePlant) and plant_dt is None:
         raise ValueError("paper_scenario: the sampled plant's dt is traced (under jit or vmap), and the horizon's number of samples must be known: pass dt=... (s)")
     if dt is None:

@@ -238,12 +238,12 @@ def _rule_indices(rules: Sequence[Sequence[str]], set_names: Sequence[str]) -> _
     return _RuleIndices(angle=idx[:, 0], velocity=idx[:, 1], torque=idx[:, 2])
 
 
-def _check_centre_array(name: str, centres: jax.typing.ArrayLike, n_sets: int) -> None:
+def _check_centre_array(name: str, centres: jax.typing.ArrayLike, n_sets: int, build: str = "") -> None:
     """Refuse, by name, set centres that are not ``[n_sets]``, finite and strictly increasing
     (concrete values only: traced ones pass). A tuple or list is refused: in a parameter
-    pytree each of its numbers would be a leaf of its own, which the surface does not read."""
+    pytree each of its numbers would be a leaf of its own, which the surface does not read.
+    ``build`` adds to that message how else to get an array."""
     if isinstance(centres, (tuple, list)):
-        build = "" if name == "centres" else ", or build the parameters with fuzzy_params(centres=...)"  # memberships' own argument: no parameters
         raise ValueError(f"{name} must be an array (jnp.asarray(...){build}); got {type(centres).__name__} {centres!r}")
     if not is_concrete(centres):
         return
@@ -257,7 +257,7 @@ def _check_centre_array(name: str, centres: jax.typing.ArrayLike, n_sets: int) -
 
 def _check_centres(params: FuzzyParams, n_sets: int) -> None:
     for name in ("angle_centres", "velocity_centres", "torque_centres"):
-        _check_centre_array(name, getattr(params, name), n_sets)
+        _check_centre_array(name, getattr(params, name), n_sets, ", or build the parameters with fuzzy_params(centres=...)")
 
 
 def _check_defuzz(defuzz: str) -> None:
