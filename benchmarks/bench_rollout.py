@@ -636,18 +636,19 @@ def _module_at(rev: str, path: str, name: str) -> Any:
 
 
 def section_ab(emit: Callable, runs: int, horizon: int, batch: int, grad_batch: int, rev: str) -> None:
+    import importlib
+
     import jax
     import jax.numpy as jnp
     import numpy as np
 
-    import jaxflex.controllers.fuzzy  # noqa: F401 - the working tree's modules
-    import jaxflex.rollout  # noqa: F401
     from jaxflex.bench import bench_inputs, bench_plant
     from jaxflex.controllers import DFSParams, combine, dfs
     from jaxflex.scenarios import Scenario
 
-    new_fuzzy = sys.modules["jaxflex.controllers.fuzzy"]  # the package re-exports functions of the same names
-    new_rollout = sys.modules["jaxflex.rollout"]
+    # the working tree's modules, by name: the package re-exports functions named as the fuzzy module
+    new_fuzzy = importlib.import_module("jaxflex.controllers.fuzzy")
+    new_rollout = importlib.import_module("jaxflex.rollout")
     old_rollout = _module_at(rev, "jaxflex/rollout.py", "_ab_rollout")
     old_fuzzy = _module_at(rev, "jaxflex/controllers/fuzzy.py", "_ab_fuzzy")
     plant = bench_plant("zoh", jnp.float32)
@@ -844,15 +845,15 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--tables", nargs="+", default=None, metavar="FILE", help="print Markdown tables of result documents and exit")
     p.add_argument("--runs", type=_count, default=5, help="timed calls per configuration after warm-up (default 5)")
     p.add_argument("--min-time", type=_seconds, default=2.0, help="timed seconds per configuration at least: more calls after --runs until they add up to this (default 2; small batches take milliseconds per call)")
-    p.add_argument("--horizon", type=int, default=1000, help="samples per scenario (default 1000 = 1 s)")
-    p.add_argument("--batch", type=int, default=4096, help="batch of the matrix, memory and baseline sections (default 4096)")
-    p.add_argument("--grad-batch", type=int, default=4096, help="batch of the gradient rows of the matrix (default 4096)")
-    p.add_argument("--batches", type=int, nargs="+", default=list(SWEEP_BATCHES), help="batch sizes of the sweep")
-    p.add_argument("--grad-batches", type=int, nargs="*", default=[1024, 4096, 16384], help="batch sizes of the gradient sweep (none: skip it)")
-    p.add_argument("--variant-batches", type=int, nargs="*", default=list(VARIANT_BATCHES), help="batch sizes of the sweep's singleton, smooth and RK4 rows (none: skip them)")
+    p.add_argument("--horizon", type=_count, default=1000, help="samples per scenario (default 1000 = 1 s)")
+    p.add_argument("--batch", type=_count, default=4096, help="batch of the matrix, memory and baseline sections (default 4096)")
+    p.add_argument("--grad-batch", type=_count, default=4096, help="batch of the gradient rows of the matrix (default 4096; the ab section's gradient rows use 1024)")
+    p.add_argument("--batches", type=_count, nargs="+", default=list(SWEEP_BATCHES), help="batch sizes of the sweep")
+    p.add_argument("--grad-batches", type=_count, nargs="*", default=[1024, 4096, 16384], help="batch sizes of the gradient sweep (none: skip it)")
+    p.add_argument("--variant-batches", type=_count, nargs="*", default=list(VARIANT_BATCHES), help="batch sizes of the sweep's singleton, smooth and RK4 rows (none: skip them)")
     p.add_argument("--max-steps", type=float, default=MAX_SWEEP_STEPS, help=f"cap on batch * horizon of one sweep call; larger batches get a shorter horizon (default {MAX_SWEEP_STEPS:g})")
-    p.add_argument("--short-horizon", type=int, default=200, help="horizon of the per-step python-control and scikit-fuzzy baselines")
-    p.add_argument("--host-devices", type=int, default=1, help="JAX CPU devices (one per core): the batch is sharded across them")
+    p.add_argument("--short-horizon", type=_count, default=200, help="horizon of the per-step python-control and scikit-fuzzy baselines")
+    p.add_argument("--host-devices", type=_count, default=1, help="JAX CPU devices (one per core): the batch is sharded across them")
     p.add_argument("--no-intra-op-threads", action="store_true", help="XLA_FLAGS=--xla_cpu_multi_thread_eigen=false")
     p.add_argument("--cost-batches", type=int, nargs="+", default=list(COST_BATCHES), help="batch sizes of the cost section (two or more)")
     p.add_argument("--ab-rev", default=AB_REV, help=f"git revision of the 'before' modules of the ab section (default {AB_REV})")

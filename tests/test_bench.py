@@ -283,6 +283,10 @@ def test_step_cost_fit_recovers_a_line_and_refuses_one_batch(capsys):
         with pytest.raises(SystemExit):
             _parser().parse_args(["--runs", bad])
         assert f"--runs: must be an integer >= 1; got {bad}" in capsys.readouterr().err
+    for option in ("--horizon", "--batch", "--grad-batch", "--batches", "--short-horizon", "--host-devices"):  # sizes, refused before any work
+        with pytest.raises(SystemExit):
+            _parser().parse_args([option, "0"])
+        assert f"{option}: must be an integer >= 1; got 0" in capsys.readouterr().err
     for bad in (["4096"], ["4096", "4096"], ["0", "16"]):
         with pytest.raises(SystemExit):
             main(["--section", "cost", "--cost-batches", *bad])
