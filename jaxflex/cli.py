@@ -504,7 +504,8 @@ def _tune(args: argparse.Namespace) -> int:
         st = summary["stability"]
         part = " of the DFS part alone (the fuzzy part is nonlinear)" if summary["controller"] == "dfs+fuzzy" else ""
         verdict = "stable" if st["stable"] else "UNSTABLE: the loop grows at these gains"
-        print(f"sampled-loop spectral radius{part} {_radius(st['spectral_radius'])}, {verdict} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {_radius(st['paper_spectral_radius'])})")
+        paper = "cannot run at this dt and capacity" if st["paper_spectral_radius"] is None else _radius(st["paper_spectral_radius"])
+        print(f"sampled-loop spectral radius{part} {_radius(st['spectral_radius'])}, {verdict} (decay rate {st['decay_rate_per_s']:.3g} 1/s; paper gains {paper})")
     print(f"wrote {os.path.join(args.out, 'tuned.json')}, history.csv and figures")
     return 0
 

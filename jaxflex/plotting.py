@@ -308,13 +308,14 @@ def save(fig: plt.Figure, path: str | os.PathLike) -> None:
 
 
 def loss_curves(
-    steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str, best_step: int | None = None, paper: float | None = None, penalised: bool = False
+    steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str, best_step: int | None = None, reference: tuple[str, float] | None = None, penalised: bool = False
 ) -> plt.Figure:
     """Training loss per step and held-out objective at each validation; log scale where the
     finite positive values span a decade or more (over less, a log axis labels one tick).
-    ``best_step``: the step whose parameters were kept, marked by a vertical line. ``paper``:
-    the paper gains' training objective, named on the axis (1 only for the mean of one unit
-    weight; the CVaR, the worst case and other weights score them otherwise). ``penalised``:
+    ``best_step``: the step whose parameters were kept, marked by a vertical line. ``reference``:
+    ``(name, objective)`` of the gains that set the objective's scales ("paper" or "initial")
+    and their training objective, named on the axis (1 only for the mean of one unit weight;
+    the CVaR, the worst case and other weights score them otherwise). ``penalised``:
     the loss holds the DFS stability penalty too (a fuzzy run's legend named one it had not)."""
     fig, ax = plt.subplots(figsize=(7.0, 3.6))
     ax.plot(steps, loss, label="training loss (objective + stability penalty)" if penalised else "training loss (objective)", color="C0")
@@ -333,7 +334,7 @@ def loss_curves(
     ax.set_xlabel("Step")
     ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # steps are updates
     ax.margins(x=0)  # the axis ran a step or more past the last one
-    ax.set_ylabel("Objective" if paper is None else f"Objective (the paper gains score {paper:.4g} on training)")
+    ax.set_ylabel("Objective" if reference is None else f"Objective (the {reference[0]} gains score {reference[1]:.4g} on training)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(title)

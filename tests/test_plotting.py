@@ -165,7 +165,7 @@ def test_stability_chart_title_with_many_modes_stays_on_the_figure():
 
 def test_loss_curves_of_a_run_that_barely_moves_read_without_an_offset():
     steps = np.arange(21)
-    fig = plotting.loss_curves(steps, 1.0 + 1e-6 * steps[::-1], np.array([0, 10, 20]), 1.0 + 1e-6 * np.array([3.0, 2.0, 1.0]), "Tuning dfs", 20, 1.0)
+    fig = plotting.loss_curves(steps, 1.0 + 1e-6 * steps[::-1], np.array([0, 10, 20]), 1.0 + 1e-6 * np.array([3.0, 2.0, 1.0]), "Tuning dfs", 20, ("paper", 1.0))
     fig.canvas.draw()
     ax = fig.axes[0]
     assert ax.yaxis.get_offset_text().get_text() == ""

@@ -233,7 +233,7 @@ def test_loss_curves_name_the_paper_gains_objective_and_whole_steps():
     effort term they scored 3.69, on an axis that said '1 = paper gains'."""
     from jaxflex import plotting
 
-    fig = plotting.loss_curves(np.arange(3), np.array([3.69, 3.68, 3.68]), np.array([0, 2]), np.array([4.9, 5.2]), "t", best_step=0, paper=3.69)
+    fig = plotting.loss_curves(np.arange(3), np.array([3.69, 3.68, 3.68]), np.array([0, 2]), np.array([4.9, 5.2]), "t", best_step=0, reference=("paper", 3.69))
     ax = fig.axes[0]
     assert ax.get_ylabel() == "Objective (the paper gains score 3.69 on training)"
     fig.canvas.draw()

@@ -942,6 +942,43 @@ def test_tuning_sharded_over_devices_equals_one_device(tmp_path):
     assert mixed["devices_from_step"] == [{"from_step": 0, "devices": 2}, {"from_step": 3, "devices": 1}]
 
 
+def test_initial_gains_may_set_the_scales_where_the_papers_cannot_run(tmp_path):
+    """At dt = 10 ms the paper's 5 ms delay does not fit the buffer, and DFS could not be tuned
+    at all: the paper's gains set the objective's scales. reference = "initial" scales it by
+    the [initial] gains, which then score 1 (the mean of one unit weight)."""
+    from tuning.run import run_tune
+
+    coarse = dict(SHARED, n_scenarios=8, n_heldout=4, scenarios=ScenarioSpec(horizon_s=0.4, dt=0.01))
+    with pytest.raises(ValueError, match=r'tau_s must be in \[0.01, 0.32\] s \(one sample to the delay buffer capacity of 32 samples\); got 0.005; set reference = "initial" to scale it by the \[initial\] gains instead$'):
+        TuneConfig(controller="dfs", initial={"tau_s": 0.02}, **coarse)
+    with pytest.raises(ValueError, match=r"reference must be one of \('paper', 'initial'\); got 'nominal'"):
+        TuneConfig(reference="nominal")
+    values = {"controller": "dfs", "reference": "initial", "initial": {"k": 40.0, "tau_s": 0.02}, "steps": 2, "eval_every": 1, "n_scenarios": 8, "n_heldout": 4}
+    config = TuneConfig.from_mapping({**values, "scenarios": {"horizon_s": 0.4, "dt": 0.01}})  # as a TOML file has it
+    problem = Problem(config)
+    assert problem.paper_raw is None
+    terms = jax.jit(problem._terms)(problem.initial_raw, problem.train)  # the scales are the initial gains' means
+    np.testing.assert_allclose(np.asarray(problem.scales.tip_ise), np.mean(np.asarray(terms.tip_ise)), rtol=1e-12)
+    summary = run_tune(config, tmp_path, progress=False)
+    assert summary["objective"]["train"]["before"] == pytest.approx(1.0, rel=1e-12)
+    assert summary["objective"]["train"]["paper"] is None and summary["objective"]["heldout"]["paper"] is None
+    assert "under the initial gains" in summary["objective"]["definition"]
+    assert summary["stability"]["paper_spectral_radius"] is None and summary["stability"]["spectral_radius"] > 0
+    assert json.loads((tmp_path / "tuned.json").read_text())["config"]["reference"] == "initial"
+    # an arm on which the paper's gains diverge (test_bad_input_is_refused's; sampled radius 1.13)
+    # tunes from gains that hold it (tau = 2 ms: 0.9957)
+    light_hub = jf.BeamParams(hub_inertia_kg_m2=jf.BeamParams().hub_inertia_kg_m2 * 0.03)
+    held = Problem(TuneConfig(controller="dfs", n_scenarios=4, n_heldout=2, method="zoh", beam=light_hub, scenarios=ScenarioSpec(horizon_s=8.0), reference="initial", initial={"tau_s": 0.002}))
+    assert all(np.isfinite(float(t)) and float(t) > 0 for t in held.scales)
+    # on the paper's arm the paper's gains still score 1 by default, and the initial ones under "initial"
+    for reference, scored in (("paper", "paper"), ("initial", "before")):
+        config = TuneConfig(controller="dfs", reference=reference, initial={"k": 80.0}, steps=1, **dict(SHARED, n_scenarios=8, n_heldout=4))
+        state = tune(config, tmp_path / reference, progress=False)
+        objective = summarize(state)["objective"]["train"]
+        assert objective[scored] == pytest.approx(1.0, rel=1e-12)
+        assert objective["before"] != pytest.approx(objective["paper"], rel=1e-3)  # k = 80 is not the paper's 55
+
+
 def test_reported_spectral_radius_is_float64_in_a_float32_run(tmp_path):
     """tuned.json's sampled-loop radius is computed in float64 as `jaxflex stability`'s is,
     whatever the run's dtype: the float32 loop matrix moved the paper's 0.99065454 to

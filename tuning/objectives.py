@@ -96,7 +96,7 @@ def terms_from_metrics(m: RunMetrics) -> Terms:
 
 
 def reference_scales(terms: Terms) -> Terms:
-    """Batch means of each term (under the paper's gains), floored so no division by 0."""
+    """Batch means of each term (under the reference gains: the paper's or the initial ones), floored so no division by 0."""
     return Terms(*(jnp.maximum(jnp.mean(t), jnp.finfo(t.dtype).tiny) for t in terms))
 
 

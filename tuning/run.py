@@ -18,11 +18,12 @@ from tuning.tuner import Problem, TuneConfig, summarize, tune
 
 N_SHOWN_HELDOUT = 3
 FIGURES = ("loss.png", *(f"{kind}_{idx}.png" for kind in ("response", "psd") for idx in range(N_SHOWN_HELDOUT + 1)))
-"""Every figure ``run_tune`` may draw: the loss, and the responses and PSDs of the paper
-scenario and of up to ``N_SHOWN_HELDOUT`` held-out ones, numbered from 0."""
+"""Every figure ``run_tune`` may draw: the loss, and the responses and PSDs (the reference
+gains, ``TuneConfig.reference``, against the tuned) of the paper scenario and of up to
+``N_SHOWN_HELDOUT`` held-out ones, numbered from 0."""
 
 
-def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> list[str]:
+def _figures(state: dict[str, Any], out_dir: str, reference_objective: float) -> list[str]:
     problem: Problem = state["problem"]
     tc, config = problem.tc, problem.config
     history = state["history"]
@@ -30,12 +31,13 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
     loss = np.array([h["loss"] for h in history])
     val_rows = [h for h in history if h.get("val_objective") is not None]
     written = []
-    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller} for the {plotting.arm_label(problem.beam.length_m, beam.natural_frequencies_hz(problem.beam, config.n_modes))}", state["best_step"], paper_objective, penalised=problem.penalised)
+    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller} for the {plotting.arm_label(problem.beam.length_m, beam.natural_frequencies_hz(problem.beam, config.n_modes))}", state["best_step"], (config.reference, reference_objective), penalised=problem.penalised)
     plotting.save(fig, os.path.join(out_dir, "loss.png"))
     written.append("loss.png")
 
     simulate = jax.jit(rollout, static_argnums=1)
-    gains = {"paper gains": tc.paper, "tuned": tc.to_physical(state["best_raw"])}
+    reference = f"{config.reference} gains"
+    gains = {reference: tc.paper if config.reference == "paper" else tc.from_named(dict(config.initial)), "tuned": tc.to_physical(state["best_raw"])}
     members = [("paper scenario", jax.tree.map(lambda a: a[0], problem.train))] if config.scenarios.include_paper else []
     members += [(f"held-out scenario {i + 1}", jax.tree.map(lambda a, i=i: a[i], problem.heldout)) for i in range(min(N_SHOWN_HELDOUT, config.n_heldout))]
     for idx, (label, scenario) in enumerate(members):
@@ -45,8 +47,8 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
         runs = {name: {"tip": np.asarray(tr.z[:, 1]), "hub": np.asarray(tr.z[:, 0])} for name, tr in trajs.items()}
         div = {name: bool(~np.all(np.isfinite(np.asarray(tr.x)))) for name, tr in trajs.items()}
         modes_hz = np.asarray(scenario_modes_hz(problem.beam, config.n_modes, scenario))
-        title = f"{config.controller}: paper vs tuned gains, {label}\n{plotting.arm_label(problem.beam.length_m, modes_hz)}"
-        fig = plotting.responses(t, runs, [("tip", "Tip deflection (m)"), ("hub", "Hub angle (rad)")], div, title, style_of={"paper gains": config.controller})
+        title = f"{config.controller}: {config.reference} vs tuned gains, {label}\n{plotting.arm_label(problem.beam.length_m, modes_hz)}"
+        fig = plotting.responses(t, runs, [("tip", "Tip deflection (m)"), ("hub", "Hub angle (rad)")], div, title, style_of={reference: config.controller})
         name = f"response_{idx}.png"
         plotting.save(fig, os.path.join(out_dir, name))
         written.append(name)
@@ -54,7 +56,7 @@ def _figures(state: dict[str, Any], out_dir: str, paper_objective: float) -> lis
         estimates = {n: welch(tr.z[:, 1], 1 / problem.dt, nperseg=nperseg) for n, tr in trajs.items()}
         psd = {n: np.asarray(p) for n, (_, p) in estimates.items()}
         freqs = np.asarray(estimates["tuned"][0])
-        fig = plotting.psds(freqs, psd, modes_hz, "PSD of tip deflection (m^2/Hz)", title, style_of={"paper gains": config.controller})
+        fig = plotting.psds(freqs, psd, modes_hz, "PSD of tip deflection (m^2/Hz)", title, style_of={reference: config.controller})
         name = f"psd_{idx}.png"
         plotting.save(fig, os.path.join(out_dir, name))
         written.append(name)
@@ -82,6 +84,6 @@ def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = F
         print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)  # with or without the bar
         summary = summarize(state)
         with fileio.replace_outputs(out_dir, (*FIGURES, "tuned.json"), last="tuned.json") as stage:
-            summary["figures"] = _figures(state, stage, summary["objective"]["train"]["paper"])
+            summary["figures"] = _figures(state, stage, summary["objective"]["train"]["paper" if config.reference == "paper" else "before"])
             fileio.write_json(os.path.join(stage, "tuned.json"), summary)
     return summary

@@ -1,7 +1,8 @@
 """The optax tuning loop: one jitted train step, held-out validation, early stopping, checkpoints.
 
 ``tune(config, out_dir)`` samples a training batch and a held-out batch of scenarios from one
-seed, normalises the objective by the paper's gains on the training batch, then runs
+seed, normalises the objective by the reference gains (the paper's, or ``initial``) on the
+training batch, then runs
 ``steps`` optimiser updates of the unconstrained parameters. Every ``checkpoint_every``
 steps it writes ``checkpoint.npz`` atomically; ``resume=True`` continues from it, and since
 every step is deterministic the result equals an uninterrupted run with the same seed (on
@@ -41,6 +42,8 @@ from tuning.objectives import ObjectiveSpec
 from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_controller
 
 CHECKPOINT = "checkpoint.npz"
+REFERENCES = ("paper", "initial")
+"""The gains that may set the objective's scales (``TuneConfig.reference``)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +71,9 @@ class TuneConfig:
       fuzzy_temperature: smoothing temperature of the fuzzy controller (0 = faithful).
       initial: starting physical parameters by name (k, tau_s, k1, k2, k3); missing names
         take the paper's values.
+      reference: the gains whose objective terms on the training batch set the objective's
+        scales (one of REFERENCES): "paper" (default), or "initial", for an arm or a sample
+        time on which the paper's gains cannot run (a 5 ms delay at dt > 5 ms) or diverge.
       beam: the nominal arm (plain numbers; default the paper's); the scenarios' plant
         perturbations are drawn around it.
       scenarios: the scenario distribution.
@@ -91,6 +97,7 @@ class TuneConfig:
     pade_order: int = 8
     fuzzy_temperature: float = 0.0
     initial: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    reference: str = "paper"
     scenarios: ScenarioSpec = ScenarioSpec()
     objective: ObjectiveSpec = ObjectiveSpec()
     beam: BeamParams = BeamParams()
@@ -106,6 +113,8 @@ class TuneConfig:
         for name in ("learning_rate", "clip_norm"):
             object.__setattr__(self, name, checks.number(name, getattr(self, name), strict=True))
         object.__setattr__(self, "seed", checks.seed("seed", self.seed))
+        if self.reference not in REFERENCES:
+            raise ValueError(f"reference must be one of {REFERENCES}; got {self.reference!r}")
         if self.delay not in DELAYS:
             raise ValueError(f"delay must be one of {DELAYS}; got {self.delay!r}")
         object.__setattr__(self, "fuzzy_temperature", check_temperature(self.fuzzy_temperature, "fuzzy_temperature"))
@@ -123,10 +132,14 @@ class TuneConfig:
         check_plants(self.scenarios, self.beam, self.n_modes, self.method)  # refuses an arm not finite in the dtype of the run, or RK4 growing one
         # Out-of-range starting values are refused here, not when tune() has made its folder.
         tc = tuned_controller(self.controller, self.scenarios.dt, self.capacity, self.delay, self.pade_order, self.fuzzy_temperature)
-        try:  # first: at dt = 10 ms the paper's 5 ms delay was refused as "initial", which the user had not given
-            tc.to_raw(tc.paper)
-        except ValueError as err:  # the objective's scales are those of the paper's gains
-            raise ValueError(f"the paper's gains, which set the objective's scales, cannot be run with dt = {self.scenarios.dt:g} s and capacity = {self.capacity}: {err}") from None
+        if self.reference == "paper":
+            try:  # first: at dt = 10 ms the paper's 5 ms delay was refused as "initial", which the user had not given
+                tc.to_raw(tc.paper)
+            except ValueError as err:
+                raise ValueError(
+                    f"the paper's gains, which set the objective's scales, cannot be run with dt = {self.scenarios.dt:g} s and capacity = {self.capacity}: {err}; "
+                    'set reference = "initial" to scale it by the [initial] gains instead'
+                ) from None
         try:
             tc.to_raw(tc.from_named(dict(self.initial)))
         except ValueError as err:
@@ -189,14 +202,19 @@ class Problem:
         self.heldout = self._place(sample_scenarios(dataclasses.replace(spec, include_paper=False), key_val, config.n_heldout, config.n_modes))
         self.nominal = discretize(make_plant(self.beam, config.n_modes), spec.dt, config.method)
         self.initial_raw = self.tc.to_raw(self.tc.from_named(dict(config.initial)))  # in range: TuneConfig checked both
-        self.paper_raw = self.tc.to_raw(self.tc.paper)
+        try:  # None where they cannot run (a 5 ms delay at dt > 5 ms), which only reference = "initial" lets by
+            self.paper_raw = self.tc.to_raw(self.tc.paper)
+        except ValueError:
+            self.paper_raw = None
+        self.reference_raw = self.paper_raw if config.reference == "paper" else self.initial_raw
         inner = optax.adam(config.learning_rate) if optimizer is None else optimizer
         self.optimizer = optax.chain(optax.clip_by_global_norm(config.clip_norm), inner)
-        self.scales = jax.jit(self._terms)(self.paper_raw, self.train)
+        self.scales = jax.jit(self._terms)(self.reference_raw, self.train)
         if not all(np.all(np.isfinite(np.asarray(t))) for t in self.scales):
+            who, advice = ("the paper's gains", ', or set reference = "initial" with [initial] gains that hold this arm') if config.reference == "paper" else ("the initial gains", "")
             raise ValueError(
-                "the paper's gains, which set the objective's scales, diverge on the training scenarios: "
-                "check the arm ([beam]), dt and method, and the scenarios' disturbances"
+                f"{who}, which set the objective's scales, diverge on the training scenarios: "
+                f"check the arm ([beam]), dt and method, and the scenarios' disturbances{advice}"
             )
         self.scales = objectives.reference_scales(self.scales)
         objective, train_step = jax.jit(self._objective), self._make_train_step()
@@ -541,7 +559,8 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
     problem: Problem = state["problem"]
     tc = problem.tc
     best = state["best_raw"]
-    ev = lambda raw, batch: fileio.shortest(problem.evaluate(raw, batch)[1]["objective"])
+    ev = lambda raw, batch: None if raw is None else fileio.shortest(problem.evaluate(raw, batch)[1]["objective"])
+    reference = problem.config.reference
     out: dict[str, Any] = {
         "controller": problem.config.controller,
         "params": tc.named(tc.to_physical(best)),
@@ -550,8 +569,8 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
         "objective": {
             "train": {"before": ev(problem.initial_raw, problem.train), "after": ev(best, problem.train), "paper": ev(problem.paper_raw, problem.train)},
             "heldout": {"before": ev(problem.initial_raw, problem.heldout), "after": ev(best, problem.heldout), "paper": ev(problem.paper_raw, problem.heldout)},
-            "definition": "weighted per-scenario losses, each term normalised by its mean under the paper's gains on the training batch "
-            "(so the mean of the paper's gains scores 1.0 per unit weight), "
+            "definition": f"weighted per-scenario losses, each term normalised by its mean under the {reference} gains on the training batch "
+            f"(so the mean of the {reference} gains scores 1.0 per unit weight; 'paper' is null where the paper's gains cannot run), "
             f"combined by {problem.config.objective.reduction}",
         },
         "dtype": str(jax.tree.leaves(best)[0].dtype),  # of the simulation: float32, or float64 under --x64
@@ -583,10 +602,10 @@ def summarize(state: dict[str, Any]) -> dict[str, Any]:
                 return math.log(float(jnp.max(jnp.abs(jnp.linalg.eigvals(loop)))))
 
             log_rho = log_radius(dfs_params)
-            paper_log_rho = log_radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0])
+            paper_log_rho = None if problem.paper_raw is None else log_radius(tc.paper if problem.config.controller == "dfs" else tc.paper[0])
         out["stability"] = {
             "spectral_radius": math.exp(log_rho),
-            "paper_spectral_radius": math.exp(paper_log_rho),
+            "paper_spectral_radius": None if paper_log_rho is None else math.exp(paper_log_rho),
             "decay_rate_per_s": -log_rho / problem.dt,
             "stable": log_rho < 0,
             "note": "sampled DFS loop on the nominal plant with its delay states; the structural z = 1 (no position action) is excluded"
