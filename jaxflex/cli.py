@@ -615,9 +615,14 @@ def _arm_config(path: str | None):
 
 def _calibrate(args: argparse.Namespace) -> int:
     from jaxflex import plotting
+    from jaxflex.plant import check_method
+    from jaxflex.scenarios import ScenarioSpec
     from tuning.calibrate import calibrate, to_toml
 
-    _, arm, config_modes = _arm_config(args.config)
+    values, arm, config_modes = _arm_config(args.config)
+    # the config's sample time and integrator go into calibrated.toml, which is to replace it
+    config_dt = ScenarioSpec.from_mapping(values["scenarios"]).dt if "scenarios" in values and "dt" in values["scenarios"] else None
+    config_method = check_method(values["method"], f"method of {args.config}") if "method" in values else None
     if args.record is None and (args.start, args.end, args.record_modes) != (None, None, None):
         raise ValueError("--start, --end and --record-modes apply to --record only")
     modes, record = _identify(args) if args.record is not None else (None, None)
@@ -646,7 +651,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         print(f"note: {note}", file=sys.stderr)
     owned = ("calibrated.toml", "calibration.json", "calibration.png", "identification.png")
     with fileio.replace_outputs(args.out, owned, last="calibration.json") as stage:
-        fileio.write_text(os.path.join(stage, "calibrated.toml"), to_toml(result))
+        fileio.write_text(os.path.join(stage, "calibrated.toml"), to_toml(result, config_dt, config_method))
         title = f"Calibration, hub {result.hub}, {result.n_modes} modes: fitted {', '.join(result.fit)}"
         plotting.save(plotting.calibration(result.measured_hz, result.before_hz, result.after_hz, title, result.measured_damping, result.after_damping), os.path.join(stage, "calibration.png"))
         summary = result.as_dict()

@@ -197,6 +197,32 @@ def test_cli_writes_a_config_the_other_commands_read(tmp_path, capsys):
     assert TuneConfig.from_mapping(fileio.read_toml(out / "calibrated.toml")).beam == arm
 
 
+def test_calibrated_config_keeps_the_configs_sample_time_and_method(tmp_path, capsys):
+    """calibrated.toml replaces the --config it started from: a config at dt = 2 ms gave one
+    with no [scenarios] table, so tune then ran at 1 ms, and RK4 was judged at 1 ms too."""
+    import tomllib
+
+    measured = [float(f) for f in natural_frequencies_hz(PAPER._replace(youngs_modulus_pa=60e9), 2)]
+    config = tmp_path / "arm.toml"
+    config.write_text('n_modes = 2\nmethod = "rk4"\n[scenarios]\ndt = 0.002\nhorizon_s = 0.5\n')
+    assert cli.main(["calibrate", "--freqs", *map(str, measured), "--config", str(config), "--out", str(tmp_path / "c")]) == 0
+    written = tomllib.loads((tmp_path / "c" / "calibrated.toml").read_text())
+    assert written["scenarios"] == {"dt": 0.002} and written["method"] == "rk4"
+    tune = TuneConfig.from_mapping(written)
+    assert (tune.scenarios.dt, tune.method, tune.n_modes) == (0.002, "rk4", 2)
+    # 6 modes at 2 ms: one RK4 step grows mode 6 (256 Hz; RK4 holds up to omega h = 2.785,
+    # 222 Hz at 2 ms), which at 1 ms it does not; the file asks for the zero-order hold
+    arm = calibrate(measured, PAPER, ("youngs_modulus_pa",), n_modes=6)
+    assert "method" not in to_toml(arm)
+    at_2ms = to_toml(arm, 0.002, "rk4")
+    assert "# RK4 (the config's method) at [scenarios] dt = 0.002 s grows this arm's" in at_2ms
+    assert tomllib.loads(at_2ms)["method"] == "zoh"
+    assert tomllib.loads(to_toml(arm, 0.002, "zoh"))["method"] == "zoh"
+    config.write_text('method = "euler"\n')
+    assert cli.main(["calibrate", "--freqs", *map(str, measured), "--config", str(config), "--out", str(tmp_path / "e")]) == 2
+    assert f"method of {config} must be one of ('rk4', 'zoh'); got 'euler'" in capsys.readouterr().err
+
+
 def test_cli_notes_a_calibrated_arm_that_still_misses_the_measurements(tmp_path, capsys):
     """Free-hub frequencies calibrated as clamped wrote an arm 34 % and 51 % off with no word;
     a fit within the threshold, or exact, says nothing."""

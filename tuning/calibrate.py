@@ -310,9 +310,14 @@ def _fit_damping(arm: beam.BeamParams, model_hz: np.ndarray, ratios: np.ndarray)
     return arm, alpha / (2.0 * omega) + beta * omega / 2.0
 
 
-def to_toml(calibration: Calibration) -> str:
+def to_toml(calibration: Calibration, dt: float | None = None, method: str | None = None) -> str:
     """A config holding the calibrated arm: ``n_modes`` and a ``[beam]`` table with every
-    field, readable as ``--config`` by ``jaxflex tune``, ``montecarlo`` and ``stability``."""
+    field, readable as ``--config`` by ``jaxflex tune``, ``montecarlo`` and ``stability``.
+
+    ``dt`` and ``method``: the sample time (``[scenarios] dt``) and integrator of the config
+    the arm came from, kept so that the file serves in its place (default: neither written,
+    RK4 judged at ``ScenarioSpec``'s 1 ms). An RK4 step that grows the arm's fastest mode at
+    that ``dt`` is replaced by the exact zero-order hold, and the file says so."""
     arm = calibration.beam
     # with the Rayleigh pair set, damping_ratio is ignored: say so where an edit would be lost
     unused = {"damping_ratio": "  # not used: rayleigh_alpha and rayleigh_beta set the damping (remove both to use it)"} if arm.rayleigh_alpha is not None else {}
@@ -320,15 +325,20 @@ def to_toml(calibration: Calibration) -> str:
     measured = ", ".join(f"{f:g}" for f in calibration.measured_hz)
     # tune's and montecarlo's default integrator would refuse an arm whose fastest mode one RK4
     # step at the default dt grows (8 modes of the paper's arm at 1 ms): the exact ZOH serves
-    dt = ScenarioSpec().dt
+    step = ScenarioSpec().dt if dt is None else dt
     with jax.enable_x64(True):
-        grown = rk4_amplified_omega(make_plant(arm, calibration.n_modes), dt)
-    method = "" if grown is None else (
-        f"# RK4 (tune's and montecarlo's default) at [scenarios] dt = {dt:g} s grows this arm's {grown / (2 * np.pi):.1f} Hz mode;\n"
-        '# the zero-order hold is exact for the arm at any dt.\nmethod = "zoh"\n'
-    )
+        grown = None if method == "zoh" else rk4_amplified_omega(make_plant(arm, calibration.n_modes), step)
+    if grown is not None:
+        whose = "tune's and montecarlo's default" if method is None else "the config's method"
+        method_line = (
+            f"# RK4 ({whose}) at [scenarios] dt = {step:g} s grows this arm's {grown / (2 * np.pi):.1f} Hz mode;\n"
+            '# the zero-order hold is exact for the arm at any dt.\nmethod = "zoh"\n'
+        )
+    else:
+        method_line = "" if method is None else f'method = "{method}"\n'
+    scenarios = "" if dt is None else f"\n[scenarios]\ndt = {float(dt)!r}\n"
     return (
         f"# jaxflex calibrate: the arm fitted to {measured} Hz (hub {calibration.hub}) with {calibration.n_modes} assumed modes.\n"
-        "# Pass it as --config to jaxflex tune, montecarlo or stability, or copy n_modes and [beam] into your config.\n"
-        f"n_modes = {calibration.n_modes}\n{method}\n[beam]\n{fields}\n"
+        "# Pass it as --config to jaxflex tune, montecarlo or stability, or copy its keys and tables into your config.\n"
+        f"n_modes = {calibration.n_modes}\n{method_line}{scenarios}\n[beam]\n{fields}\n"
     )
