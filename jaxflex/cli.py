@@ -731,8 +731,9 @@ def _stability(args: argparse.Namespace) -> int:
     first, sampled = result["first_destabilising_delay_s"], result["first_destabilising_delay_sampled_s"]
     rk4 = result["spectral_radius_rk4"]
     arm_name = f"the arm of {args.config}" if values.get("beam") else "the paper's arm"
+    whose_rk4 = {None: "the default of tune and montecarlo", "rk4": f"the method of {args.config}"}.get(values.get("method"), f"which {args.config} does not use")
     print(f"{arm_name}, k = {args.k:g}, tau = {args.tau:g} s, {n_modes} modes, dt = {dt:g} s: sampled-loop spectral radius {_radius(result['spectral_radius'])} "
-          f"({'stable' if result['stable_sampled'] else 'UNSTABLE'}; sampled by RK4, the default of tune and montecarlo: {_radius(rk4)}, {'stable' if rk4 < 1 else 'UNSTABLE'}), "
+          f"({'stable' if result['stable_sampled'] else 'UNSTABLE'}; sampled by RK4, {whose_rk4}: {_radius(rk4)}, {'stable' if rk4 < 1 else 'UNSTABLE'}), "
           f"first destabilising delay {'none' if first is None else f'{first:g} s'} (continuous loop; sampled loop: "
           f"{'none up to ' + format(result['first_destabilising_delay_sampled_tau_max_s'], 'g') + ' s' if sampled is None else f'{sampled:g} s'})")
     print(f"wrote {os.path.join(args.out, 'stability.json')} and {os.path.join(args.out, 'stability_chart.png')}")

@@ -219,7 +219,7 @@ def psds(freqs: np.ndarray, runs: Mapping[str, np.ndarray], mode_freqs_hz: Seque
             ax.plot([], [], " ", label=f"{LABELS.get(run, run)} (non-finite, not drawn)")
     shown = [f for f in mode_freqs_hz if f <= fmax]
     for i, f in enumerate(shown):
-        label = f"model modes ({', '.join(f'{g:.1f}' for g in shown)} Hz)" if i == 0 else None
+        label = f"model modes ({', '.join(f'{float(g):.3g}' for g in shown)} Hz)" if i == 0 else None  # as arm_label writes them
         ax.axvline(f, color="k", lw=0.6, alpha=0.4, label=label)
     if ylim is not None:
         ax.set_ylim(*ylim)

@@ -31,6 +31,7 @@ def test_tune_psd_marks_the_modes_of_the_scenarios_own_plant(monkeypatch, tmp_pa
     run._figures(state, str(tmp_path), 1.0)
     assert len(marked) == 3  # the paper scenario (nominal plant), then held-out 1 and 2
     nominal = np.asarray(beam.natural_frequencies_hz(arm, config.n_modes))
+    assert titles["responses"][0].endswith(f"2 modes at {nominal[0]:.3g}, {nominal[1]:.3g} Hz")  # the nominal arm's, said as such
     np.testing.assert_allclose(marked[0], nominal)
     assert titles["loss"] == [f"Tuning dfs for the 0.8 m arm, 2 modes at {nominal[0]:.3g}, {nominal[1]:.3g} Hz"]
     for i, modes in enumerate(marked[1:]):
@@ -38,7 +39,7 @@ def test_tune_psd_marks_the_modes_of_the_scenarios_own_plant(monkeypatch, tmp_pa
         expected = np.asarray(beam.natural_frequencies_hz(plant, config.n_modes))
         assert np.max(np.abs(expected / nominal - 1)) > 0.01  # the draw moved them
         np.testing.assert_allclose(modes, expected, rtol=1e-6)
-        title = f"dfs: paper vs tuned gains, held-out scenario {i + 1}\n0.8 m arm, 2 modes at {expected[0]:.3g}, {expected[1]:.3g} Hz"
+        title = f"dfs: paper vs tuned gains, held-out scenario {i + 1}\n0.8 m arm, 2 modes at {expected[0]:.3g}, {expected[1]:.3g} Hz (this scenario's plant)"
         assert titles["responses"][i + 1] == titles["psds"][i + 1] == title
 
 

@@ -289,6 +289,11 @@ def test_psd_figure_legend_names_the_modes_and_a_diverged_run():
     assert "model modes (13.3, 36.5 Hz)" in texts  # only the modes on the axis (up to 150 Hz)
     assert any(t.endswith("(non-finite, not drawn)") for t in texts)
     assert len(texts) == 3
+    # the modes as the title's arm_label writes them: 5.957 Hz read "6.0" under a title's "5.96"
+    fig = plotting.psds(freqs, {"dfs": np.ones_like(freqs)}, (5.957, 20.21), "y", plotting.arm_label(0.8, (5.957, 20.21)))
+    assert "model modes (5.96, 20.2 Hz)" in [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert fig.axes[0].get_title().endswith("at 5.96, 20.2 Hz")
+    plt.close(fig)
 
 
 def test_welch_and_reduction_gradients_against_scipy_central_differences():

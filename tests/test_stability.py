@@ -650,6 +650,11 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     # the loop tune and montecarlo simulate by default (RK4) is printed beside the ZOH one, a
     # large radius in 4 digits (a 4 m thick arm's printed as 3531649110.40803719)
     assert f"the arm of {config}, k = 55, tau = 0.005 s, 2 modes, dt = 0.001 s: sampled-loop spectral radius 0.50000000 (stable; sampled by RK4, the default of tune and montecarlo: 3.532e+09, UNSTABLE), first destabilising delay 0.0123 s (continuous loop; sampled loop: none up to 0.04 s)" in capsys.readouterr().out
+    # a config that sets its method is named beside the RK4 radius, which read as the run's own
+    for method, whose in (("zoh", f"which {config} does not use"), ("rk4", f"the method of {config}")):
+        config.write_text(f'method = "{method}"\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
+        assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
+        assert f"(stable; sampled by RK4, {whose}: 3.532e+09, UNSTABLE)" in capsys.readouterr().out
     # the tuned arm's model and sample time come from the config, unless the flags say otherwise
     config.write_text('n_modes = 3\n[scenarios]\ndt = 5e-4\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0

@@ -31,7 +31,8 @@ def _figures(state: dict[str, Any], out_dir: str, reference_objective: float) ->
     loss = np.array([h["loss"] for h in history])
     val_rows = [h for h in history if h.get("val_objective") is not None]
     written = []
-    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller} for the {plotting.arm_label(problem.beam.length_m, beam.natural_frequencies_hz(problem.beam, config.n_modes))}", state["best_step"], (config.reference, reference_objective), penalised=problem.penalised)
+    nominal_hz = np.asarray(beam.natural_frequencies_hz(problem.beam, config.n_modes))
+    fig = plotting.loss_curves(steps, loss, np.array([h["step"] for h in val_rows]), np.array([h["val_objective"] for h in val_rows]), f"Tuning {config.controller} for the {plotting.arm_label(problem.beam.length_m, nominal_hz)}", state["best_step"], (config.reference, reference_objective), penalised=problem.penalised)
     plotting.save(fig, os.path.join(out_dir, "loss.png"))
     written.append("loss.png")
 
@@ -47,7 +48,8 @@ def _figures(state: dict[str, Any], out_dir: str, reference_objective: float) ->
         runs = {name: {"tip": np.asarray(tr.z[:, 1]), "hub": np.asarray(tr.z[:, 0])} for name, tr in trajs.items()}
         div = {name: bool(~np.all(np.isfinite(np.asarray(tr.x)))) for name, tr in trajs.items()}
         modes_hz = np.asarray(scenario_modes_hz(problem.beam, config.n_modes, scenario))
-        title = f"{config.controller}: {config.reference} vs tuned gains, {label}\n{plotting.arm_label(problem.beam.length_m, modes_hz)}"
+        whose = "" if np.allclose(modes_hz, nominal_hz, rtol=1e-6, atol=0) else " (this scenario's plant)"  # a held-out scenario's perturbed arm, not the nominal one
+        title = f"{config.controller}: {config.reference} vs tuned gains, {label}\n{plotting.arm_label(problem.beam.length_m, modes_hz)}{whose}"
         fig = plotting.responses(t, runs, [("tip", "Tip deflection (m)"), ("hub", "Hub angle (rad)")], div, title, style_of={reference: config.controller})
         name = f"response_{idx}.png"
         plotting.save(fig, os.path.join(out_dir, name))
