@@ -288,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for signum, handler in previous.items():
             signal.signal(signum, signal.SIG_DFL if handler is None else handler)
         if new_out:
-            _remove_if_empty(out)
+            fileio.remove_if_empty(out)
 
 
 def console() -> None:
@@ -307,21 +307,6 @@ def console() -> None:
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     sys.exit(code)
-
-
-def _remove_if_empty(folder: str) -> None:
-    """Remove ``folder`` (which this run created) when a failed or interrupted run wrote no
-    file in it, so that no empty result folder is left behind; a folder holding any file (a
-    checkpoint to resume from, finished results) is kept. The run lock counts for none."""
-    if any(name != fileio.RUN_LOCK for _, _, files in os.walk(folder) for name in files):
-        return
-    with contextlib.suppress(OSError):  # none there, or no folder at all
-        os.remove(os.path.join(folder, fileio.RUN_LOCK))
-    for root, _, _ in sorted(os.walk(folder), key=lambda entry: -len(entry[0])):
-        try:
-            os.rmdir(root)
-        except OSError:
-            return
 
 
 def _check_out(path: str) -> None:

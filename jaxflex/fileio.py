@@ -115,6 +115,42 @@ def run_lock(folder: str | os.PathLike, name: str = "out_dir") -> Iterator[None]
         os.close(fd)
 
 
+def remove_if_empty(folder: str) -> None:
+    """Remove ``folder`` (which this run created) when a failed or interrupted run wrote no
+    file in it, so that no empty result folder is left behind; a folder holding any file (a
+    checkpoint to resume from, finished results) is kept. The run lock counts for none, but a
+    folder whose lock another run holds is kept: two runs started at once into a new folder
+    both found it new, and the one refused removed the other's folder and lock, which let a
+    third run in beside it."""
+    lock = os.path.join(folder, RUN_LOCK)
+    try:
+        fd = os.open(lock, os.O_RDWR)
+    except FileNotFoundError:
+        fd = None
+    except OSError:  # no folder at all, or one this process cannot read
+        return
+    try:
+        if fd is not None and fcntl is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return  # another run's
+            except OSError:  # a file system without locks
+                pass
+        if any(name != RUN_LOCK for _, _, files in os.walk(folder) for name in files):
+            return
+        with contextlib.suppress(OSError):
+            os.remove(lock)
+        for root, _, _ in sorted(os.walk(folder), key=lambda entry: -len(entry[0])):
+            try:
+                os.rmdir(root)
+            except OSError:
+                return
+    finally:
+        if fd is not None:
+            os.close(fd)
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     """Call ``write(tmp_path)`` on a temporary file beside ``path``, then rename it over ``path``
     once its data is on disk (``fsync``).

@@ -53,6 +53,36 @@ def test_a_run_into_a_folder_another_run_holds_is_refused(tmp_path):
     assert summary["n_scenarios"] == 4  # the lock released, the folder takes a run
 
 
+def test_a_run_refused_from_a_new_folder_leaves_the_other_runs_folder(tmp_path, monkeypatch, capsys):
+    """Two runs started at once into a new folder both found it new; the one refused then
+    removed the folder and the other's lock as its own empty folder, and a third run went in
+    beside the first. Here the first run takes the folder between the second's check that it
+    is new and its own lock, as a process started a moment earlier does."""
+    fcntl = pytest.importorskip("fcntl")
+    from jaxflex import cli, fileio
+
+    out = tmp_path / "race"
+    held = []
+    real_run = cli._run
+
+    def first_run_takes_the_folder(args):
+        out.mkdir()
+        fd = os.open(out / fileio.RUN_LOCK, os.O_RDWR | os.O_CREAT)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        held.append(fd)
+        return real_run(args)
+
+    monkeypatch.setattr(cli, "_run", first_run_takes_the_folder)
+    try:
+        assert cli.main(["montecarlo", "--controller", "dfs", "--scenarios", "4", "--chunk", "4", "--out", str(out), "--no-progress"]) == 2
+        assert "is in use by another run still going" in capsys.readouterr().err
+        assert os.listdir(out) == [fileio.RUN_LOCK]  # the first run's folder and lock stay
+    finally:
+        os.close(held[0])
+    fileio.remove_if_empty(str(out))  # the lock released: an empty folder of a run that wrote nothing goes
+    assert not out.exists()
+
+
 def test_a_resume_by_another_program_is_refused(tmp_path, monkeypatch):
     """A resume by other code, or another jax, was accepted, and its summary mixed the chunks
     of two programs (one change to the modal frequencies moved reduction_db_mode2 by 1.7 dB).
