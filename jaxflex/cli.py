@@ -171,7 +171,7 @@ def _parser() -> argparse.ArgumentParser:
     mc = sub.add_parser("montecarlo", help="batched Monte Carlo over sampled scenarios: statistics, histograms, percentile bands")
     mc.add_argument("--controller", choices=NAMES, default=None, help="controller (default dfs+fuzzy)")
     mc.add_argument("--params", default=None, help="tuned.json from `jaxflex tune` (default: the paper's gains)")
-    mc.add_argument("--scenarios", type=_positive_int, default=None, help="number of scenarios N (default 10000)")
+    mc.add_argument("--scenarios", type=_positive_int, default=None, help="number of scenarios N (default 10000; with --resume, the folder's)")
     mc.add_argument("--chunk", type=_positive_int, default=None, help="scenarios per chunk; memory grows with it (default 4096; with --resume, the folder's)")
     mc.add_argument("--seed", type=int, default=None, help="PRNG seed (default 0)")
     mc.add_argument("--unroll", type=_positive_int, default=None, help="samples per compiled loop iteration, 1-64 (default 1; with --resume, the folder's); on a GPU 8 runs a chunk about 3x as fast after 5-6 s more compiling, which pays in runs of millions of scenarios; slower on a CPU")
@@ -550,10 +550,12 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values.setdefault("n_modes", tuned.n_modes)
         values.setdefault("method", tuned.method)
     if args.resume:  # what neither the options nor the config set: the folder's
-        taken = {key: value for key, value in recorded_settings(args.out).items() if key not in values and getattr(args, key) is None}
+        option = {"n_scenarios": "scenarios", "chunk": "chunk", "unroll": "unroll"}  # each key's argument
+        taken = {key: value for key, value in recorded_settings(args.out).items() if key not in values and getattr(args, option[key]) is None}
         values.update(taken)
         if taken:
-            print(f"montecarlo: --resume: {' and '.join(f'{key} {value}' for key, value in taken.items())}, as the run in {args.out} recorded", file=sys.stderr)
+            said = [f"--{option[key]} {value}" for key, value in taken.items()]
+            print(f"montecarlo: --resume: {', '.join(said[:-1]) + ' and ' if len(said) > 1 else ''}{said[-1]}, as the run in {args.out} recorded", file=sys.stderr)
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed, "unroll": args.unroll}
     values.update({k: v for k, v in overrides.items() if v is not None})
     config = MCConfig(**values)

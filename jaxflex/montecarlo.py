@@ -304,12 +304,14 @@ def run_montecarlo(
 def _run_locked(config: MCConfig, out_dir: str, resume: bool, progress: bool, figures: bool, on_chunk: Callable[[int], None] | None) -> dict[str, Any]:
     """``run_montecarlo`` with the folder's run lock held."""
     meta_path, summary_path, chunks_dir = (os.path.join(out_dir, name) for name in (META, "summary.json", "chunks"))
-    meta = {"fingerprint": config.fingerprint(), "chunk": config.run_chunk, "config": config.fingerprint_fields()}
+    meta = {"fingerprint": config.fingerprint(), "chunk": config.run_chunk, "n_scenarios": config.n_scenarios, "config": config.fingerprint_fields()}
     # The folder is checked before any sampling or compiling.
     if os.path.exists(meta_path):
         if not resume:
             raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume (resume=True) to continue it, or choose another --out (out_dir)")
         _check_resume(meta_path, meta, config.n_scenarios)
+        if _read_meta(meta_path).get("n_scenarios") != config.n_scenarios:  # the count a later bare --resume goes on to
+            fileio.write_json(meta_path, meta)
         # summary.json is rewritten at the end; until then the previous one would describe
         # another set of chunks.
         if os.path.exists(summary_path):
@@ -407,15 +409,17 @@ def _read_meta(meta_path: str) -> Any:
 
 
 def recorded_settings(out_dir: str | os.PathLike) -> dict[str, int]:
-    """The ``chunk`` and ``unroll`` that the run in ``out_dir`` recorded, those it holds (none
-    when it has no readable record, which ``run_montecarlo`` names): ``jaxflex montecarlo
-    --resume`` runs at them unless told otherwise."""
+    """The ``n_scenarios``, ``chunk`` and ``unroll`` that the run in ``out_dir`` recorded, those
+    it holds (none when it has no readable record, which ``run_montecarlo`` names; no
+    ``n_scenarios`` in a folder written before it was recorded): ``jaxflex montecarlo --resume``
+    runs at them unless told otherwise. A resume with another ``n_scenarios`` records that."""
     try:
         previous = _read_meta(os.path.join(os.fspath(out_dir), META))
     except ValueError:
         return {}
     config = previous.get("config") if isinstance(previous, dict) else None
-    found = {"chunk": previous.get("chunk") if isinstance(previous, dict) else None, "unroll": config.get("unroll") if isinstance(config, dict) else None}
+    record = previous if isinstance(previous, dict) else {}
+    found = {"n_scenarios": record.get("n_scenarios"), "chunk": record.get("chunk"), "unroll": config.get("unroll") if isinstance(config, dict) else None}
     return {key: value for key, value in found.items() if isinstance(value, int) and not isinstance(value, bool)}
 
 

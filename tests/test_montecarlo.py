@@ -388,9 +388,13 @@ def test_cli_says_how_many_runs_did_not_settle(tmp_path, capsys):
     # a resume that sets neither --chunk nor --unroll takes the folder's (it compared the
     # defaults, 4096 and 1, with them and was refused: 'changed: unroll: 2 -> 1')
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "5", "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
-    assert f"montecarlo: --resume: chunk 3 and unroll 2, as the run in {tmp_path / 'o'} recorded\n" in capsys.readouterr().err
+    assert f"montecarlo: --resume: --chunk 3 and --unroll 2, as the run in {tmp_path / 'o'} recorded\n" in capsys.readouterr().err
     meta = json.loads((tmp_path / "o" / montecarlo.META).read_text())
-    assert (meta["chunk"], meta["config"]["unroll"]) == (3, 2)
+    assert (meta["chunk"], meta["config"]["unroll"], meta["n_scenarios"]) == (3, 2, 5)  # the resume's count recorded
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["n_scenarios"] == 5
+    # nor --scenarios: the folder's count (it ran the default 10,000 instead, silently)
+    assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
+    assert f"montecarlo: --resume: --scenarios 5, --chunk 3 and --unroll 2, as the run in {tmp_path / 'o'} recorded\n" in capsys.readouterr().err
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["n_scenarios"] == 5
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "5", "--out", str(tmp_path / "o"), "--no-progress", "--resume", "--unroll", "1"]) == 2
     assert "changed: unroll: 2 -> 1" in capsys.readouterr().err  # one given is compared, not replaced
