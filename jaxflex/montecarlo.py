@@ -15,6 +15,7 @@ Across hosts, start the same command on every host after ``jax.distributed.initi
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -43,6 +44,8 @@ from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plan
 
 CONTROLLERS = NAMES
 META = "montecarlo.json"
+FIGURES = ("histograms.png", "tip_bands.png")
+"""The figures a run draws into its folder, beside summary.json."""
 """The file in a Monte Carlo folder that says which configuration wrote its chunks."""
 METRICS = {
     "settling_time_s": "settling time of the tip deflection (s; 2 % of its peak, around 0)",
@@ -289,8 +292,9 @@ def run_montecarlo(
     config: MCConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, figures: bool = True, on_chunk: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
     """Run (or resume) the Monte Carlo; writes chunk files, summary.json (last) and (optionally)
-    figures. summary.json is there only when the run has finished: resuming removes the previous
-    one first, once the folder's configuration has been checked.
+    figures (``FIGURES``). summary.json and the figures are there only when the run has
+    finished: resuming removes the previous ones first, once the folder's configuration has
+    been checked, and the end writes them staged and moved in together.
 
     Raises:
       ValueError: bad configuration, or a resume into a folder made by another configuration.
@@ -312,10 +316,11 @@ def _run_locked(config: MCConfig, out_dir: str, resume: bool, progress: bool, fi
         _check_resume(meta_path, meta, config.n_scenarios)
         if _read_meta(meta_path).get("n_scenarios") != config.n_scenarios:  # the count a later bare --resume goes on to
             fileio.write_json(meta_path, meta)
-        # summary.json is rewritten at the end; until then the previous one would describe
-        # another set of chunks.
-        if os.path.exists(summary_path):
-            os.remove(summary_path)
+        # summary.json and the figures are rewritten at the end; until then the previous ones
+        # would describe another set of chunks.
+        for path in (summary_path, *(os.path.join(out_dir, name) for name in FIGURES)):
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(path)
     elif os.path.isdir(chunks_dir) and os.listdir(chunks_dir):
         # Chunks without the metadata that says which configuration made them: a new run
         # would take them as its own, and a resumed one cannot check them.
@@ -377,8 +382,11 @@ def _run_locked(config: MCConfig, out_dir: str, resume: bool, progress: bool, fi
     summary["dtype"] = meta["config"]["dtype"]
     if figures:  # with or without the bar, as each stage is said
         print("montecarlo: drawing figures", file=sys.stderr, flush=True)
-    summary["figures"] = _figures(runner, merged, out_dir) if figures else []
-    fileio.write_json(summary_path, summary)
+    # staged and moved in together, summary.json last: a run stopped while drawing leaves
+    # neither a figure nor the summary (it left the figures drawn so far)
+    with fileio.replace_outputs(out_dir, (*FIGURES, "summary.json"), last="summary.json") as stage:
+        summary["figures"] = _figures(runner, merged, stage) if figures else []
+        fileio.write_json(os.path.join(stage, "summary.json"), summary)
     return summary
 
 
@@ -473,9 +481,9 @@ def _figures(runner: _Runner, columns: dict[str, np.ndarray], out_dir: str) -> l
     data = {name: columns[name][ok] for name in names}
     labels = metric_names(runner.config.n_modes, REDUCTION_LABEL)
     arm = f"nominal {plotting.arm_label(runner.beam.length_m, beam.natural_frequencies_hz(runner.beam, runner.config.n_modes))}"
-    plotting.save(plotting.histograms(data, labels, f"{runner.config.controller}: {int(ok.sum())} of {ok.size} runs (diverged left out)\n{arm}"), os.path.join(out_dir, "histograms.png"))
+    plotting.save(plotting.histograms(data, labels, f"{runner.config.controller}: {int(ok.sum())} of {ok.size} runs (diverged left out)\n{arm}"), os.path.join(out_dir, FIGURES[0]))
     percentiles = sorted(set(runner.config.percentiles) | {50.0})
     t, bands, kept, count = tip_bands(runner, percentiles)
     title = f"{runner.config.controller}: tip deflection percentiles over {kept} of {count} scenarios (diverged left out)\n{arm}"
-    plotting.save(plotting.percentile_bands(t, bands, percentiles, "Tip deflection (m)", title), os.path.join(out_dir, "tip_bands.png"))
-    return ["histograms.png", "tip_bands.png"]
+    plotting.save(plotting.percentile_bands(t, bands, percentiles, "Tip deflection (m)", title), os.path.join(out_dir, FIGURES[1]))
+    return list(FIGURES)

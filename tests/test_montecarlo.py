@@ -174,6 +174,15 @@ def test_summary_matches_direct_rollouts(tmp_path, monkeypatch):
     np.testing.assert_allclose([stats["p5"], stats["p99"]], np.percentile(peaks, [5, 99]), rtol=1e-10)
     assert "p50" not in stats and again["percentiles"] == [5.0, 99.0]
     assert drawn["percentiles"] == [5.0, 50.0, 99.0] and "over 8 of 8 scenarios" in drawn["title"]
+    # a resume stopped while drawing leaves neither figure nor summary: the histograms were
+    # drawn into the folder first, beside the previous run's bands, and a resume left both old
+    def stopped(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plotting, "percentile_bands", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        run_montecarlo(config, tmp_path, resume=True, progress=False)
+    assert not any((tmp_path / name).exists() for name in (*montecarlo.FIGURES, "summary.json"))
     # a folder written when they still bound it (in its config and its hash) resumes too
     meta = json.loads((tmp_path / "montecarlo.json").read_text())
     meta["config"].update(percentiles=[10.0, 50.0, 90.0], band_scenarios=256)
