@@ -701,6 +701,21 @@ def test_resume_from_an_unreadable_checkpoint_is_refused(tmp_path, meta):
     assert "pickle" not in str(err.value)
 
 
+def test_resume_from_a_checkpoint_with_arrays_of_other_shapes_is_refused(tmp_path):
+    """A checkpoint with the run's fingerprint but an array of another shape (edited by hand,
+    or written by other code) was accepted, and the run went on from a broken state."""
+    config = TuneConfig(controller="dfs", steps=1, **SMALL)
+    tune(config, tmp_path, progress=False)
+    path = tmp_path / CHECKPOINT
+    with np.load(path) as data:
+        arrays = {name: data[name] for name in data.files}
+    arrays["leaf_0"] = np.zeros((0,), arrays["leaf_0"].dtype)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    with pytest.raises(ValueError, match=re.escape(f"--resume: {path} is damaged or not a checkpoint of jaxflex tune (its arrays have shapes [(0,), ()")):
+        tune(dataclasses.replace(config, steps=2), tmp_path, resume=True, progress=False)
+
+
 def test_command_line_flags_beat_the_config_file():
     config = TuneConfig.from_mapping({"n_scenarios": 5, "steps": 7, "seed": 2}, n_scenarios=3, steps=None, seed=0)
     assert (config.n_scenarios, config.steps, config.seed) == (3, 7, 0)

@@ -332,6 +332,9 @@ def _load_checkpoint(path: str, template: tuple[Any, Any, Any] | None = None) ->
     if not isinstance(state, dict) or not {"fingerprint", "step"} <= state.keys():
         raise ValueError(f"{damaged} (its metadata lacks the run's fingerprint and step); start a new run in another --out")
     if template is not None:
+        expected = [np.shape(leaf) for leaf in jax.tree.leaves(template)]
+        if [leaf.shape for leaf in leaves] != expected:  # an edited or foreign file with the right names
+            raise ValueError(f"{damaged} (its arrays have shapes {[leaf.shape for leaf in leaves]}, this run's {expected}); start a new run in another --out")
         state["raw"], state["opt_state"], state["best_raw"] = jax.tree.unflatten(treedef, leaves)
     return state
 
