@@ -964,7 +964,7 @@ def test_initial_gains_may_set_the_scales_where_the_papers_cannot_run(tmp_path):
     from tuning.run import run_tune
 
     coarse = dict(SHARED, n_scenarios=8, n_heldout=4, scenarios=ScenarioSpec(horizon_s=0.4, dt=0.01))
-    with pytest.raises(ValueError, match=r'tau_s must be in \[0.01, 0.32\] s \(one sample to the delay buffer capacity of 32 samples\); got 0.005; set reference = "initial" to scale it by the \[initial\] gains instead$'):
+    with pytest.raises(ValueError, match=r'tau_s must be in \[0.01, 0.32\] s \(one sample to the delay buffer capacity of 32 samples\); got 0.005; set reference = "initial" to scale the objective by the \[initial\] gains instead$'):
         TuneConfig(controller="dfs", initial={"tau_s": 0.02}, **coarse)
     with pytest.raises(ValueError, match=r"reference must be one of \('paper', 'initial'\); got 'nominal'"):
         TuneConfig(reference="nominal")

@@ -2,8 +2,7 @@
 
 ``tune(config, out_dir)`` samples a training batch and a held-out batch of scenarios from one
 seed, normalises the objective by the reference gains (the paper's, or ``initial``) on the
-training batch, then runs
-``steps`` optimiser updates of the unconstrained parameters. Every ``checkpoint_every``
+training batch, then runs ``steps`` optimiser updates of the unconstrained parameters. Every ``checkpoint_every``
 steps it writes ``checkpoint.npz`` atomically; ``resume=True`` continues from it, and since
 every step is deterministic the result equals an uninterrupted run with the same seed (on
 the same number of devices; on another, to the order of additions). The scenarios are
@@ -138,7 +137,7 @@ class TuneConfig:
             except ValueError as err:
                 raise ValueError(
                     f"the paper's gains, which set the objective's scales, cannot be run with dt = {self.scenarios.dt:g} s and capacity = {self.capacity}: {err}; "
-                    'set reference = "initial" to scale it by the [initial] gains instead'
+                    'set reference = "initial" to scale the objective by the [initial] gains instead'
                 ) from None
         try:
             tc.to_raw(tc.from_named(dict(self.initial)))
