@@ -328,6 +328,49 @@ def test_gradient_finite_where_no_rule_fires(defuzz):
     assert np.isfinite(float(grads_e))
 
 
+def test_the_documented_gradient_at_a_set_centre_tie():
+    """What the module docstring and the README state about an input exactly on a set centre:
+    both one-sided derivatives agree there (the derivative exists), but reverse mode splits
+    each tied min/max half and half and returns something else: -0.375 against the slope
+    -1.5 at the origin; on the paper scenario from rest, whose first sample is there, a
+    quarter of the derivative in ``angle_centres[2]`` and 6 % less in ``velocity_centres[2]``.
+    Moved off the tie (the same centre at +-0.01) the gradient is the derivative, and the
+    centres no first sample ties (the torque centres) are exact: the tie, not the code."""
+    from jaxflex import BeamParams, discretize, make_plant, paper_scenario, rollout
+
+    unit = fuzzy_params(k1=1.0, k2=1.0, k3=1.0)
+    h = 1e-6
+    for f in (lambda x: fuzzy_surface(unit, x, 0.0), lambda x: fuzzy_surface(unit, 0.0, x)):
+        above, below = (f(h) - f(0.0)) / h, (f(0.0) - f(-h)) / h
+        np.testing.assert_allclose([above, below], -1.5, rtol=1e-5)
+        assert float(jax.grad(f)(0.0)) == -0.375
+
+    plant = discretize(make_plant(BeamParams(), 2), 1e-3, "rk4")
+    scenario = paper_scenario(plant, horizon_s=0.04)
+    params = fuzzy_params()
+
+    def ise_in(name, i):
+        def ise(c):
+            centres = getattr(params, name).at[i].set(c)
+            return rollout(plant, fuzzy(), params._replace(**{name: centres}), scenario, output="metrics").tip_ise
+
+        return jax.jit(ise), jax.jit(jax.grad(ise))
+
+    h = 1e-6
+    for name, i, ratio in (("angle_centres", 2, 0.25), ("velocity_centres", 2, 0.9402), ("torque_centres", 2, 1.0)):
+        ise, grad = ise_in(name, i)
+        c0 = float(getattr(params, name)[i])
+        # second-order one-sided differences (truncation O(h^2)), from above and from below
+        above = (4 * ise(c0 + h) - ise(c0 + 2 * h) - 3 * ise(c0)) / (2 * h)
+        below = (3 * ise(c0) - 4 * ise(c0 - h) + ise(c0 - 2 * h)) / (2 * h)
+        np.testing.assert_allclose(below, above, rtol=1e-6)
+        np.testing.assert_allclose(grad(c0) / above, ratio, rtol=1e-4)
+        for off in (0.01, -0.01):
+            if name != "torque_centres":
+                difference = (ise(off + h) - ise(off - h)) / (2 * h)
+                np.testing.assert_allclose(grad(off), difference, rtol=1e-6)
+
+
 @pytest.mark.parametrize("defuzz, temperature", [("centroid", 0.0), ("singleton", 0.0), ("centroid", 0.02)])
 def test_a_nan_measurement_gives_a_nan_torque_and_a_diverged_run(defuzz, temperature):
     """A NaN input made every rule strength NaN, and the no-rule guard (den > 0) turned the

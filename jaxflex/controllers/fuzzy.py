@@ -43,12 +43,15 @@ division is guarded by a double ``jnp.where`` so that gradients stay finite ther
 Everything is jit/vmap/grad compatible and differentiable almost everywhere with respect to
 ``k1, k2, k3`` and the centres (the kinks of min/max and of the triangles are measure-zero).
 At a kink JAX splits each ``min``/``max`` tie half and half, and an input exactly on a set
-centre ties several at once, so there the gradient is neither one-sided derivative: at the
-origin the surface's slope is -1.5 in each input, but reverse mode returns -0.375. A run
-starting at rest (``theta = theta_dot = 0``, as the paper scenario does) has its first
-sample there; the gradients in ``k1`` and ``k2`` do not see it (they multiply a zero input),
-those in the centres do (23 % off in ``angle_centres[2]`` over 40 ms of the paper scenario).
-A smooth controller (``T > 0``) has no kinks.
+centre ties several at once, so there the gradient is neither one-sided derivative, even
+where the two agree: at the origin the surface's slope is -1.5 in each input from either
+side, but reverse mode returns -0.375. A run starting at rest (``theta = theta_dot = 0``, as
+the paper scenario does) has its first sample there; the gradients in ``k1`` and ``k2`` do
+not see it (they multiply a zero input), nor do those in ``k3`` and the torque centres; the
+two zero centres do: over 40 ms of the paper scenario, reverse mode gives a quarter of the
+derivative of the tip ISE in ``angle_centres[2]`` and 6 % less than it in
+``velocity_centres[2]`` (tested; moved off the tie, 0.01 away, both are exact). The tuner
+tunes ``k1``-``k3`` only. A smooth controller (``T > 0``) has no kinks.
 
 **Smooth mode** (``temperature=T > 0`` in ``fuzzy``, ``fuzzy_surface``, ``memberships``). One
 code path: each non-smooth operation is a primitive that branches once, at trace time, on the
