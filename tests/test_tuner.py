@@ -1059,6 +1059,13 @@ def test_a_pade_or_cubic_run_reports_and_penalises_its_own_loop(tmp_path, capsys
         radii = [float(jnp.max(jnp.abs(jnp.linalg.eigvals(m)))) for m in loops]
     value = float(cubic.dfs_log_radius(DFSParams(55.0, 0.0043)))
     assert value == pytest.approx(math.log(radii[0]), rel=1e-9) and value != pytest.approx(math.log(radii[1]), rel=1e-6)
+    # and its derivative, inside one sample interval (the cubic read has kinks at whole samples)
+    cubic_log_radius, at = (lambda p: cubic.dfs_log_radius(DFSParams(p[0], p[1]))), jnp.asarray([55.0, 0.0043])
+    grad = jax.grad(cubic_log_radius)(at)
+    for i, h in enumerate((1e-3, 1e-8)):
+        step = jnp.zeros(2).at[i].set(h)
+        fd = (cubic_log_radius(at + step) - cubic_log_radius(at - step)) / (2 * h)
+        assert float(grad[i]) != 0 and float(grad[i]) == pytest.approx(float(fd), rel=1e-5)
 
 
 def test_a_run_resumed_after_its_last_update_ends_its_log_at_100_percent(tmp_path, capsys):
