@@ -160,6 +160,11 @@ def test_vibration_reduction_db_exact_values():
     # A band with no bins gives NaN, not a silent read of bin 0.
     f_peak, _ = band_peak(jnp.array([0.0, 10.0, 20.0]), jnp.ones(3), 14.0, rel_band=0.1)
     assert np.isnan(f_peak)
+    # ... and a gradient of exactly 0 there (as documented), while the other mode's is 10 log10 e / psd
+    bandless = jax.grad(lambda closed: jnp.sum(vibration_reduction_db(freqs, psd_open, closed, jnp.array([16.0, 500.0]))))(jnp.asarray(psd_closed))
+    expected = np.zeros(101)
+    expected[17] = -10 / np.log(10) / psd_closed[17]
+    np.testing.assert_allclose(bandless, expected, rtol=1e-12)
     # A band whose PSD is all 0 (a mode not excited) still gives a bin in the band, its lowest
     f_peak, idx = band_peak(jnp.arange(10.0), jnp.zeros(10), 5.0, rel_band=0.3)
     assert float(f_peak) == 4.0 and int(idx) == 4

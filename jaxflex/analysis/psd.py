@@ -329,7 +329,9 @@ def vibration_reduction_db(
     return ``10 * log10(psd_open[k_i] / psd_closed[k_i])``, both PSDs read at that
     same bin. Positive values mean the closed loop has less power there. Both PSDs
     must come from the same estimator settings (same ``freqs``). NaN when no bin lies
-    in a band; +inf where ``psd_closed`` is 0 at the bin.
+    in a band (with a gradient of exactly 0 there: a NaN entry adds nothing to a
+    gradient, so a loss on it must check for NaN itself); +inf where ``psd_closed`` is 0
+    at the bin.
 
     Args:
       freqs: ``[F]`` bin frequencies (Hz) shared by both PSDs.
