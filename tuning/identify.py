@@ -22,8 +22,9 @@ well the record is a sum of ``r`` decaying modes.
 arm's higher modes, which would otherwise bias the lower ones), each with its conjugate, and
 room for the rigid mode's constant and ramp. Real poles and poles with less than one cycle in
 the window (the rigid mode, drift, offsets) are set aside, and so are modes no stronger than
-``NOISE_FACTOR`` times the noise (what the model leaves of the record) in every channel; of
-the rest, the ``n`` lowest are the modes. Without noise, and with no more modes in the record
+``NOISE_FACTOR`` times the noise (what the model leaves of the record) in every channel, or no
+longer so a period after their peak (poles fitted to round-off, gone within a sample or two);
+of the rest, the ``n`` lowest are the modes. Without noise, and with no more modes in the record
 than fitted, the poles are exact; with noise, their error shrinks as the record lengthens,
 while its lags (at most ``MAX_ROWS``) span a period or more of each mode (see ``lag_span_s``).
 
@@ -55,7 +56,8 @@ model without them shifts the lower ones (the paper's arm simulated with 8 modes
 with none extra: mode 3 taken for mode 2; for 3, mode 2's damping ratio 9-27 % off)."""
 NOISE_FACTOR = 3.0
 """A mode counts when its RMS in some channel is above this many times what the model leaves
-of that channel (the noise), or of ``MIN_RMS`` (round-off) on a noise-free record."""
+of that channel (the noise), or of ``MIN_RMS`` (round-off) on a noise-free record, and so is
+its envelope there one period after its peak."""
 MIN_RMS = 1e-6
 """The noise floor of a noise-free record, as a fraction of each channel's RMS."""
 GRID_RTOL = 0.5
@@ -236,8 +238,14 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
     oscillating = (poles.imag > 0) & (s.imag * (t[-1] - t[0]) > 2 * np.pi)
     modes = 2 * np.real(basis[:, oscillating] @ amplitudes[oscillating])
     residual = float(np.sqrt(np.mean(noise**2) / np.mean(modes**2))) if np.any(oscillating) else math.inf
-    # above the noise in some channel: what is left of the record, or round-off
-    found = np.flatnonzero(oscillating & np.any(rms > NOISE_FACTOR * np.maximum(noise, MIN_RMS), axis=1))
+    # above the noise in some channel (what is left of the record, or round-off), and still
+    # above it there a period after its peak (each basis column peaks at 1): a pole fitted to
+    # round-off can be as strong but gone within a sample or two (a damping ratio near 1),
+    # which is no vibration
+    floor = NOISE_FACTOR * np.maximum(noise, MIN_RMS)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        period_later = factor * np.abs(amplitudes) * np.exp(-2 * np.pi * np.abs(s.real) / np.abs(s.imag))[:, None]
+    found = np.flatnonzero(oscillating & np.any((rms > floor) & (period_later > floor), axis=1))
     found = found[np.argsort(np.abs(s[found]))]
     if found.size < n_modes:
         shown = f" ({', '.join(f'{abs(f) / (2 * np.pi):.4g} Hz' for f in s[found])})" if found.size else ""
