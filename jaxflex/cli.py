@@ -549,9 +549,10 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values.setdefault("beam", tuned.beam)  # the arm it was tuned for, and the model of it
         values.setdefault("n_modes", tuned.n_modes)
         values.setdefault("method", tuned.method)
+    recorded = recorded_settings(args.out) if args.resume else {}
     if args.resume:  # what neither the options nor the config set: the folder's
         option = {"n_scenarios": "scenarios", "chunk": "chunk", "unroll": "unroll"}  # each key's argument
-        taken = {key: value for key, value in recorded_settings(args.out).items() if key not in values and getattr(args, option[key]) is None}
+        taken = {key: value for key, value in recorded.items() if key not in values and getattr(args, option[key]) is None}
         values.update(taken)
         if taken:
             said = [f"--{option[key]} {value}" for key, value in taken.items()]
@@ -559,6 +560,10 @@ def _montecarlo(args: argparse.Namespace) -> int:
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed, "unroll": args.unroll}
     values.update({k: v for k, v in overrides.items() if v is not None})
     config = MCConfig(**values)
+    if config.n_scenarios < recorded.get("n_scenarios", 0):
+        given = "--scenarios" if args.scenarios is not None else f"n_scenarios of {args.config}"
+        print(f"note: --resume: {given} asks for {config.n_scenarios} scenarios, where the run in {args.out} recorded {recorded['n_scenarios']}: "
+              f"the summary covers the first {config.n_scenarios}, and the folder now records {config.n_scenarios}", file=sys.stderr)
     if tuned is not None and (differences := tuned.differences(config.beam, config.n_modes, config.scenarios.dt, config.method)):
         print(f"note: {args.params} was tuned for {', '.join(differences)}; --config sets what runs here", file=sys.stderr)
     print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)

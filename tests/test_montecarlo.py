@@ -405,6 +405,13 @@ def test_cli_says_how_many_runs_did_not_settle(tmp_path, capsys):
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
     assert f"montecarlo: --resume: --scenarios 5, --chunk 3 and --unroll 2, as the run in {tmp_path / 'o'} recorded\n" in capsys.readouterr().err
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["n_scenarios"] == 5
+    # fewer than recorded, from the config or --scenarios: said (it shrank the run silently)
+    config.write_text("band_scenarios = 2\nn_scenarios = 4\n[scenarios]\nhorizon_s = 0.05\n")
+    assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
+    assert f"note: --resume: n_scenarios of {config} asks for 4 scenarios, where the run in {tmp_path / 'o'} recorded 5" in capsys.readouterr().err
+    assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "3", "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
+    assert "note: --resume: --scenarios asks for 3 scenarios, where the run in" in capsys.readouterr().err
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["n_scenarios"] == 3
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "5", "--out", str(tmp_path / "o"), "--no-progress", "--resume", "--unroll", "1"]) == 2
     assert "changed: unroll: 2 -> 1" in capsys.readouterr().err  # one given is compared, not replaced
 
