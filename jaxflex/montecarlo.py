@@ -39,7 +39,7 @@ from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
 from jaxflex.heartbeat import Heartbeat
 from jaxflex.plant import check_method, discretize, make_plant
-from jaxflex.rollout import RunMetrics, rollout
+from jaxflex.rollout import MAX_UNROLL, RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plant, check_plants, pad_batch, sample_scenarios
 
 CONTROLLERS = NAMES
@@ -58,8 +58,6 @@ REDUCTION_DOC = (
     "10 log10 of the open-loop over the closed-loop energy of the tip deflection at mode i of the scenario's own plant "
     "(Hann-windowed single-bin DFT over the horizon, streamed in the rollout) (dB)"
 )
-MAX_UNROLL = 64
-"""MCConfig.unroll's largest value: each sample of an iteration is compiled once more."""
 REDUCTION_LABEL = "vibration reduction at mode i: open over closed-loop energy of the tip deflection (dB)"
 """``REDUCTION_DOC`` short enough for a histogram's axis (it took four lines under the panel)."""
 

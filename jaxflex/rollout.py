@@ -114,6 +114,9 @@ class RunMetrics(NamedTuple):
 
 
 OUTPUTS = ("trajectory", "metrics")
+MAX_UNROLL = 64
+"""``unroll``'s largest value: each sample of an iteration is compiled once more (10^5 never
+finished compiling)."""
 
 
 def _wider(value: Any, dtype: Any) -> bool:
@@ -228,7 +231,7 @@ def rollout(
       mode_freqs_hz: [n_f] frequencies (Hz, finite, >= 0) of ``RunMetrics.modal_energy``
         (metrics only); for a batch, shared or [B, n_f].
       unroll: samples per iteration of the compiled loop (``lax.scan``'s ``unroll``), an
-        integer >= 1. It changes the speed, not the model: XLA may fuse and round otherwise
+        integer in [1, ``MAX_UNROLL``]. It changes the speed, not the model: XLA may fuse and round otherwise
         (on the H100 every finite value of the Monte Carlo's metrics was the same to the bit; on the
         CPU, in float32, a final hub angle moved by 1e-9 rad, a settling time by one sample,
         and the largest dB reductions, where the closed-loop energy nears the float's
@@ -253,7 +256,7 @@ def rollout(
       :func:`jaxflex.analysis.metrics.diverged` report it.
     """
     check_controller("controller", controller)
-    unroll = checks.integer("unroll", unroll)
+    unroll = checks.integer("unroll", unroll, high=MAX_UNROLL)
     batch, settling_band = _check_inputs(plant, scenario, params, settling_band, mode_freqs_hz)
     if output not in OUTPUTS:
         raise ValueError(f"output must be one of {OUTPUTS}; got {output!r}")

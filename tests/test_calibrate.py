@@ -218,6 +218,8 @@ def test_calibrated_config_keeps_the_configs_sample_time_and_method(tmp_path, ca
     assert "# RK4 (the config's method) at [scenarios] dt = 0.002 s grows this arm's" in at_2ms
     assert tomllib.loads(at_2ms)["method"] == "zoh"
     assert tomllib.loads(to_toml(arm, 0.002, "zoh"))["method"] == "zoh"
+    with pytest.raises(ValueError, match=r"method must be one of \('rk4', 'zoh'\); got 'x'"):
+        to_toml(arm, 0.002, "x")  # it wrote method = "x", refused only later by tune
     config.write_text('method = "euler"\n')
     assert cli.main(["calibrate", "--freqs", *map(str, measured), "--config", str(config), "--out", str(tmp_path / "e")]) == 2
     assert f"method of {config} must be one of ('rk4', 'zoh'); got 'euler'" in capsys.readouterr().err
