@@ -93,6 +93,8 @@ def run_lock(folder: str | os.PathLike, name: str = "out_dir") -> Iterator[None]
     if not isinstance(folder, (str, os.PathLike)) or not os.fspath(folder):
         raise ValueError(f"{name} must be a folder's path (a non-empty str or os.PathLike); got {folder!r}")
     folder = os.fspath(folder)
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise ValueError(f"{name} {folder!r} is a file, not a folder")
     os.makedirs(folder, exist_ok=True)
     key = os.path.realpath(folder)
     if fcntl is None or key in _HELD_RUN_LOCKS:

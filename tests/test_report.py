@@ -405,6 +405,15 @@ def test_run_lock_is_held_in_the_block_taken_again_inside_and_released_after(tmp
         assert free()
 
 
+def test_a_run_into_a_file_is_refused_by_name(tmp_path):
+    """tune and run_montecarlo (through run_lock) said only 'FileExistsError: [Errno 17]'."""
+    from jaxflex.montecarlo import MCConfig, run_montecarlo
+
+    (tmp_path / "f").write_text("")
+    with pytest.raises(ValueError, match=f"out_dir \\(--out\\) {re.escape(repr(str(tmp_path / 'f')))} is a file, not a folder"):
+        run_montecarlo(MCConfig(n_scenarios=1), tmp_path / "f", progress=False)
+
+
 def test_digest_ignores_key_order_and_changed_fields_names_what_differs():
     a = {"seed": 0, "scenarios": {"dt": 0.001, "horizon_s": 3.0}, "controller": "dfs"}
     b = {"controller": "dfs", "scenarios": {"horizon_s": 3.0, "dt": 0.001}, "seed": 0}
