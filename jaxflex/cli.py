@@ -516,6 +516,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             raise ValueError(f"--distributed: {err} Pass --coordinator HOST:PORT, --num-processes and --process-id, or run under a cluster "
                              "JAX detects (SLURM, Open MPI)") from None
     from jaxflex.beam import params_from_mapping
+    from jaxflex.controllers.registry import PARAMETERS
     from jaxflex.montecarlo import MCConfig, recorded_settings, run_montecarlo
     from jaxflex.report import format_value, load_tuned
     from jaxflex.scenarios import ScenarioSpec
@@ -537,6 +538,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values["percentiles"] = tuple(values["percentiles"])
     if "beam" in values:
         values["beam"] = params_from_mapping(values["beam"])
+    if tuned is not None and "params" in values:
+        raise ValueError(f"--params {args.params} and [params] in {args.config} both set the controller's parameters: give one of them")
     if tuned is not None:
         controller = args.controller or values.get("controller", tuned.name)
         if controller != tuned.name:
@@ -560,6 +563,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed, "unroll": args.unroll}
     values.update({k: v for k, v in overrides.items() if v is not None})
     config = MCConfig(**values)
+    if unused := sorted(set(values.get("params", {})) - set(PARAMETERS[config.controller])):
+        print(f"note: {config.controller} does not use [params] {', '.join(unused)} of {args.config} (it reads {', '.join(PARAMETERS[config.controller]) or 'none'})", file=sys.stderr)
     if config.n_scenarios < recorded.get("n_scenarios", 0):
         given = "--scenarios" if args.scenarios is not None else f"n_scenarios of {args.config}"
         print(f"note: --resume: {given} asks for {config.n_scenarios} scenarios, where the run in {args.out} recorded {recorded['n_scenarios']}: "
@@ -576,7 +581,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
     if settling["nonfinite"]:
         # not diverged is not settled: an unstable loop that grows slowly diverges in no run
         print(f"note: {settling['nonfinite']} of the {settling['count'] + settling['nonfinite']} runs that did not diverge had not settled by the end "
-              f"of the {config.scenarios.horizon_s:g} s horizon (settling time +inf, left out of its statistics)", file=sys.stderr)
+              f"of the {config.scenarios.horizon_s:g} s horizon (settling time +inf, left out of its statistics; their other metrics are in theirs, "
+              f"and a loop growing away from the mode frequencies reads there as a large dB reduction: each run's row is in {os.path.join(args.out, 'chunks')})", file=sys.stderr)
     print(f"wrote {os.path.join(args.out, 'summary.json')} and figures")
     return 0
 

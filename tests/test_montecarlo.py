@@ -17,6 +17,7 @@ import pytest
 import jaxflex as jf
 from jaxflex import beam, montecarlo, plotting
 from jaxflex.controllers import OpenLoopParams, open_loop
+from jaxflex.controllers.registry import PAPER_PARAMS
 from jaxflex.heartbeat import Heartbeat
 from jaxflex.beam import BeamParams
 from jaxflex.montecarlo import MCConfig, controller_and_params, run_montecarlo
@@ -388,12 +389,14 @@ def test_cli_says_how_many_runs_did_not_settle(tmp_path, capsys):
     from jaxflex import cli
 
     config = tmp_path / "mc.toml"
-    config.write_text("band_scenarios = 2\n[scenarios]\nhorizon_s = 0.05\n")
+    config.write_text("band_scenarios = 2\n[params]\nk = 30.0\nk1 = 1.5\n[scenarios]\nhorizon_s = 0.05\n")
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "3", "--out", str(tmp_path / "o"), "--no-progress", "--unroll", "2"]) == 0
     printed, err = capsys.readouterr()
+    assert f"note: open_loop does not use [params] k, k1 of {config} (it reads none)" in err  # --controller overrode the config's controller
     assert "diverged fraction 0" in printed
     assert json.loads((tmp_path / "o" / montecarlo.META).read_text())["config"]["unroll"] == 2  # --unroll reached the run
     assert "note: 3 of the 3 runs that did not diverge had not settled by the end of the 0.05 s horizon" in err
+    assert f"reads there as a large dB reduction: each run's row is in {tmp_path / 'o' / 'chunks'})" in err
     # a resume that sets neither --chunk nor --unroll takes the folder's (it compared the
     # defaults, 4096 and 1, with them and was refused: 'changed: unroll: 2 -> 1')
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "5", "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
@@ -406,7 +409,7 @@ def test_cli_says_how_many_runs_did_not_settle(tmp_path, capsys):
     assert f"montecarlo: --resume: --scenarios 5, --chunk 3 and --unroll 2, as the run in {tmp_path / 'o'} recorded\n" in capsys.readouterr().err
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["n_scenarios"] == 5
     # fewer than recorded, from the config or --scenarios: said (it shrank the run silently)
-    config.write_text("band_scenarios = 2\nn_scenarios = 4\n[scenarios]\nhorizon_s = 0.05\n")
+    config.write_text("band_scenarios = 2\nn_scenarios = 4\n[params]\nk = 30.0\nk1 = 1.5\n[scenarios]\nhorizon_s = 0.05\n")
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
     assert f"note: --resume: n_scenarios of {config} asks for 4 scenarios, where the run in {tmp_path / 'o'} recorded 5" in capsys.readouterr().err
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "3", "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
@@ -452,6 +455,11 @@ def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
     arm_plant = discretize(make_plant(BeamParams(length_m=0.6, payload_mass_kg=0.05), 3), 1e-3, "zoh")
     np.testing.assert_allclose(montecarlo._Runner(direct).nominal.Ad, arm_plant.Ad, rtol=1e-12)
     assert not np.allclose(arm_plant.Ad, discretize(make_plant(BeamParams(), 3), 1e-3, "zoh").Ad)
+    # a config's [params] beside --params: one of the two would be dropped without a word
+    config.write_text("band_scenarios = 2\n[params]\nk = 30.0\n[scenarios]\nhorizon_s = 0.05\n")
+    assert cli.main(["montecarlo", "--params", str(tuned), "--config", str(config), "--scenarios", "3", "--out", str(tmp_path / "both"), "--no-progress"]) == 2
+    assert f"--params {tuned} and [params] in {config} both set the controller's parameters: give one of them" in capsys.readouterr().err
+    assert not (tmp_path / "both").exists()
 
 
 def test_params_tuned_at_another_dt_run_at_that_dt(tmp_path, capsys):
@@ -797,3 +805,30 @@ def test_an_unrolled_loop_reaches_both_rollouts_and_leaves_the_metrics():
     for bad in (0, 65, 2.0, True):
         with pytest.raises(ValueError, match=rf"unroll must be an integer in \[1, 64\]; got {bad!r}"):
             MCConfig(unroll=bad)
+
+
+def test_readme_montecarlo_config_is_the_defaults_it_says(tmp_path, monkeypatch, capsys):
+    """The README's montecarlo config block is read by the command as written, and each value
+    it shows is the default it says it is (the README had no key list at all)."""
+    import pathlib
+
+    from jaxflex import cli
+
+    readme = (pathlib.Path(__file__).resolve().parent.parent / "README.md").read_text()
+    section = readme.split("## Monte Carlo: `jaxflex montecarlo`", 1)[1]
+    config = tmp_path / "mc.toml"
+    config.write_text(section.split("```toml\n", 1)[1].split("```", 1)[0])
+
+    class Given(Exception):
+        pass
+
+    def given(config, *args, **kwargs):
+        raise Given(config)
+
+    monkeypatch.setattr(montecarlo, "run_montecarlo", given)
+    with pytest.raises(Given) as ran:  # the configuration the run would have been given
+        cli.main(["montecarlo", "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress"])
+    assert "does not use [params]" not in capsys.readouterr().err
+    config = ran.value.args[0]
+    assert dataclasses.replace(config, params={}) == MCConfig()  # [beam] shows the paper's arm, [scenarios] the default horizon
+    assert config.params.items() <= PAPER_PARAMS.items()  # [params] the paper's values
