@@ -37,7 +37,9 @@ from jaxflex.beam import BeamParams
 from jaxflex.controllers import Controller, OpenLoopParams, by_name, open_loop
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import CONFIG_OPTIONS, DELAYS, NAMES, PARAMETERS, param_values
+from jaxflex.delay import check_capacity
 from jaxflex.heartbeat import Heartbeat
+from jaxflex.pade import check_order
 from jaxflex.plant import check_method, discretize, make_plant
 from jaxflex.rollout import MAX_UNROLL, RunMetrics, rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plant, check_plants, pad_batch, sample_scenarios
@@ -56,7 +58,8 @@ METRICS = {
 }
 REDUCTION_DOC = (
     "10 log10 of the open-loop over the closed-loop energy of the tip deflection at mode i of the scenario's own plant "
-    "(Hann-windowed single-bin DFT over the horizon, streamed in the rollout) (dB)"
+    "(Hann-windowed single-bin DFT over the horizon, streamed in the rollout) (dB); NaN when the mode is at or above "
+    "the Nyquist frequency, where the samples hold only its alias"
 )
 REDUCTION_LABEL = "vibration reduction at mode i: open over closed-loop energy of the tip deflection (dB)"
 """``REDUCTION_DOC`` short enough for a histogram's axis (it took four lines under the panel)."""
@@ -110,8 +113,10 @@ class MCConfig:
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
-        for name in ("n_scenarios", "chunk", "capacity", "pade_order", "band_scenarios"):
+        for name in ("n_scenarios", "chunk", "band_scenarios"):
             object.__setattr__(self, name, checks.integer(name, getattr(self, name)))
+        object.__setattr__(self, "capacity", check_capacity(self.capacity))
+        object.__setattr__(self, "pade_order", check_order(self.pade_order, "pade_order"))
         object.__setattr__(self, "n_modes", beam.check_n_modes(self.n_modes))
         object.__setattr__(self, "unroll", checks.integer("unroll", self.unroll, 1, high=MAX_UNROLL))
         object.__setattr__(self, "seed", checks.seed("seed", self.seed))
@@ -181,9 +186,10 @@ def metric_names(n_modes: int, reduction: str = REDUCTION_DOC) -> dict[str, str]
     return {**METRICS, **{f"reduction_db_mode{i + 1}": reduction.replace("mode i", f"mode {i + 1}") for i in range(n_modes)}}
 
 
-def _metrics_row(m: RunMetrics, open_loop_energy: jax.Array, length_m: float) -> dict[str, jax.Array]:
-    """One scenario's row; ``diverged`` is ``run_diverged``."""
-    reduction = 10 * (jnp.log10(open_loop_energy) - jnp.log10(m.modal_energy))
+def _metrics_row(m: RunMetrics, open_loop_energy: jax.Array, freqs_hz: jax.Array, length_m: float, nyquist_hz: float) -> dict[str, jax.Array]:
+    """One scenario's row; ``diverged`` is ``run_diverged``, and the reduction at a mode of
+    ``freqs_hz`` at or above ``nyquist_hz`` is NaN."""
+    reduction = jnp.where(freqs_hz < nyquist_hz, 10 * (jnp.log10(open_loop_energy) - jnp.log10(m.modal_energy)), jnp.nan)
     return {
         "settling_time_s": m.settling_time_s,
         "peak_tip_deflection_m": m.peak_tip_m,
@@ -218,7 +224,7 @@ class _Runner:
             freqs = batch_modes_hz(self.beam, config.n_modes, batch)
             closed = rollout(plant, self.controller, self.params, batch, output="metrics", mode_freqs_hz=freqs, unroll=config.unroll)
             opened = rollout(plant, open_loop(), OpenLoopParams(), batch, output="metrics", mode_freqs_hz=freqs, unroll=config.unroll)
-            return jax.vmap(partial(_metrics_row, length_m=self.beam.length_m))(closed, opened.modal_energy)
+            return jax.vmap(partial(_metrics_row, length_m=self.beam.length_m, nyquist_hz=0.5 / spec.dt))(closed, opened.modal_energy, jnp.broadcast_to(freqs, opened.modal_energy.shape))
 
         self.evaluate = jax.jit(evaluate)
 

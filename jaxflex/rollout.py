@@ -197,6 +197,9 @@ def _check_inputs(plant: DiscretePlant, scenario: Scenario, params: Any, settlin
             raise ValueError(f"mode_freqs_hz must be a 1-D array of frequencies (Hz){f', or {batch[0]} of them (one row per scenario)' if batch else ''}; got shape {freqs.shape}")
         if is_concrete(freqs) and not np.all(np.isfinite(np.asarray(freqs)) & (np.asarray(freqs) >= 0)):  # NumPy: no tracer under jit
             raise ValueError(f"mode_freqs_hz must be finite frequencies >= 0 (Hz); got {np.asarray(freqs)}")
+        # a frequency at or above Nyquist reads the energy of its alias, not its own
+        if is_concrete(freqs) and is_concrete(plant.dt) and np.any(np.asarray(freqs) >= 0.5 / np.max(plant.dt)):
+            raise ValueError(f"mode_freqs_hz must be below the Nyquist frequency, {0.5 / np.max(plant.dt):.6g} Hz (dt = {np.max(plant.dt):g} s); got {np.asarray(freqs)}")
     return batch, float(settling_band)
 
 
@@ -228,7 +231,7 @@ def rollout(
         metrics only, memory O(1) in T).
       settling_band: band of the running settling time, as a fraction of the peak, in (0, 1):
         a number or a concrete 0-d array.
-      mode_freqs_hz: [n_f] frequencies (Hz, finite, >= 0) of ``RunMetrics.modal_energy``
+      mode_freqs_hz: [n_f] frequencies (Hz, finite, in [0, Nyquist)) of ``RunMetrics.modal_energy``
         (metrics only); for a batch, shared or [B, n_f].
       unroll: samples per iteration of the compiled loop (``lax.scan``'s ``unroll``), an
         integer in [1, ``MAX_UNROLL``]. It changes the speed, not the model: XLA may fuse and round otherwise

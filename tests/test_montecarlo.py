@@ -832,3 +832,17 @@ def test_readme_montecarlo_config_is_the_defaults_it_says(tmp_path, monkeypatch,
     config = ran.value.args[0]
     assert dataclasses.replace(config, params={}) == MCConfig()  # [beam] shows the paper's arm, [scenarios] the default horizon
     assert config.params.items() <= PAPER_PARAMS.items()  # [params] the paper's values
+
+
+def test_a_mode_above_nyquist_has_no_reduction(tmp_path):
+    """At dt = 0.02 s (Nyquist 25 Hz) mode 2, near 36 Hz, is sampled only as its alias: its dB
+    reduction is NaN, counted apart, where mode 1's stays (the open loop's own: 0 dB)."""
+    spec = ScenarioSpec(horizon_s=0.4, dt=0.02)
+    config = MCConfig(controller="open_loop", n_scenarios=3, band_scenarios=2, scenarios=spec, method="zoh")
+    runner = montecarlo._Runner(config)
+    batch = runner.sample(0)
+    with pytest.raises(ValueError, match=r"mode_freqs_hz must be below the Nyquist frequency, 25 Hz \(dt = 0.02 s\)"):  # rollout's own check
+        jf.rollout(runner.nominal, open_loop(), OpenLoopParams(), batch, output="metrics", mode_freqs_hz=np.asarray([13.3, 36.5]))
+    metrics = run_montecarlo(config, tmp_path, progress=False, figures=False)["metrics"]
+    assert (metrics["reduction_db_mode2"]["count"], metrics["reduction_db_mode2"]["nonfinite"]) == (0, 3)
+    assert metrics["reduction_db_mode1"]["count"] == 3 and abs(metrics["reduction_db_mode1"]["max"]) < 1e-6
