@@ -32,7 +32,9 @@ from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
+from jaxflex.delay import MAX_CAPACITY
 from jaxflex.heartbeat import Heartbeat
+from jaxflex.pade import check_order
 from jaxflex.plant import DiscretePlant, check_method, discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plant, check_plants, pad_batch, sample_scenarios
@@ -104,11 +106,12 @@ class TuneConfig:
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}; got {self.controller!r}")
-        for name in ("n_scenarios", "n_heldout", "steps", "eval_every", "patience", "checkpoint_every", "capacity", "pade_order"):
+        for name in ("n_scenarios", "n_heldout", "steps", "eval_every", "patience", "checkpoint_every"):
             object.__setattr__(self, name, checks.integer(name, getattr(self, name)))
         object.__setattr__(self, "n_modes", beam.check_n_modes(self.n_modes))
-        if self.capacity < 2:
-            raise ValueError(f"capacity must be >= 2 samples; got {self.capacity}")
+        # two samples at least: the tuned delay runs from one sample to the buffer's length
+        object.__setattr__(self, "capacity", checks.integer("capacity", self.capacity, 2, unit="samples", high=MAX_CAPACITY))
+        object.__setattr__(self, "pade_order", check_order(self.pade_order, "pade_order"))
         for name in ("learning_rate", "clip_norm"):
             object.__setattr__(self, name, checks.number(name, getattr(self, name), strict=True))
         object.__setattr__(self, "seed", checks.seed("seed", self.seed))
