@@ -480,6 +480,12 @@ def test_validation():
     with pytest.raises(ValueError, match=r"k3 must lie in .* to be held in bfloat16"):
         fuzzy_params(k3=-1e39, dtype=jnp.bfloat16)
     assert float(fuzzy_params(k3=1e39).k3) == 1e39  # float64 holds it
+    # centres that no controller can use are refused here, by this argument's name (they were
+    # taken, and refused later as "angle_centres", a name the caller had not given)
+    with pytest.raises(ValueError, match=re.escape("centres must be a 1-D array of at least 2 set centres; got shape (1,)")):
+        fuzzy_params(centres=[0.0])
+    with pytest.raises(ValueError, match=re.escape("centres must have shape (3,), be finite and strictly increasing; got [-1.0, 0.0, 0.0]")):
+        fuzzy_params(centres=[-1.0, 0.0, 0.0])
     # traced values are built as they are (checked where used), and bfloat16 is a real dtype
     assert float(jax.jit(lambda k: fuzzy_params(k, 0.3).k1)(2.0)) == 2.0
     assert float(jax.grad(lambda k: 3.0 * fuzzy_params(k).k1)(1.0)) == 3.0

@@ -103,6 +103,16 @@ def test_bad_options_are_refused_by_name():
         with pytest.raises(ValueError, match=re.escape(f"params['k'] must be a finite number; got {bad!r}")):
             by_name("dfs", dt=DT, params={"k": bad})
     assert by_name("dfs", dt=DT, params={"k": np.float32(30.0)})[1] == DFSParams(30.0, 0.005)
+    # every option is checked, whether the controller reads it or not (a Pade order of -5
+    # passed with the default delay, and a capacity of 0 with the fuzzy controller)
+    for name, option, message in (
+        ("dfs", {"pade_order": -5}, "pade_order must be an integer in [1, 100]; got -5"),
+        ("fuzzy", {"capacity": 0}, "capacity must be an integer in [1, 1000000] (samples); got 0"),
+        ("dfs", {"defuzz": "mean"}, "defuzz must be one of ('centroid', 'singleton'); got 'mean'"),
+        ("open_loop", {"temperature": -1.0}, "temperature must be 0 (the faithful controller) or a Python float in [1e-05, 1]"),
+    ):
+        with pytest.raises(ValueError, match=re.escape(message)):
+            by_name(name, dt=DT, **option)
     # the configurations refuse them when they are made, by the table's name
     with pytest.raises(ValueError, match=re.escape("params['k'] must be a finite number; got True")):
         montecarlo.MCConfig(params={"k": True})

@@ -177,7 +177,8 @@ def fuzzy_params(
 
     Raises:
       ValueError: naming a concrete argument that is not a real number (or, for
-        ``centres``, an array of them), or one beyond the range of ``dtype``.
+        ``centres``, a 1-D, finite, strictly increasing array of at least 2), or one beyond
+        the range of ``dtype``.
     """
     dtype = checks.float_dtype("dtype", dtype)
     biggest = float(jnp.finfo(dtype).max)
@@ -188,6 +189,7 @@ def fuzzy_params(
                 raise ValueError(f"{name} must lie in [-{biggest:.4g}, {biggest:.4g}] to be held in {dtype.name} "
                                  f"(dtype=jnp.float64 with jax_enable_x64); got {value!r}")
     c = jnp.asarray(centres, dtype=dtype)
+    _check_set_centres(c)
     return FuzzyParams(
         k1=jnp.asarray(k1, dtype=dtype),
         k2=jnp.asarray(k2, dtype=dtype),
@@ -258,12 +260,22 @@ def _check_centre_array(name: str, centres: jax.typing.ArrayLike, n_sets: int, b
         raise ValueError(f"{accepted}; got {c.tolist()}")
 
 
+def _check_set_centres(centres: jax.typing.ArrayLike) -> None:
+    """Refuse ``centres`` that are not a 1-D, finite, strictly increasing array of at least 2
+    (any number of sets: a controller checks its own count)."""
+    shape = jnp.shape(centres)
+    if len(shape) != 1 or shape[0] < 2:
+        raise ValueError(f"centres must be a 1-D array of at least 2 set centres; got shape {shape}")
+    _check_centre_array("centres", centres, shape[0])
+
+
 def _check_centres(params: FuzzyParams, n_sets: int) -> None:
     for name in ("angle_centres", "velocity_centres", "torque_centres"):
         _check_centre_array(name, getattr(params, name), n_sets, ", or build the parameters with fuzzy_params(centres=...)")
 
 
-def _check_defuzz(defuzz: str) -> None:
+def check_defuzz(defuzz: str) -> None:
+    """Refuse, by name, a ``defuzz`` that is not one of the defuzzifiers."""
     if defuzz not in _DEFUZZ_METHODS:
         raise ValueError(f"defuzz must be one of {_DEFUZZ_METHODS}; got {defuzz!r}")
 
@@ -460,10 +472,7 @@ def memberships(x: jax.typing.ArrayLike, centres: jax.Array, *, temperature: flo
         least 2, or a ``temperature`` out of its range (``check_temperature``).
     """
     t = check_temperature(temperature)
-    shape = jnp.shape(centres)
-    if len(shape) != 1 or shape[0] < 2:
-        raise ValueError(f"centres must be a 1-D array of at least 2 set centres; got shape {shape}")
-    _check_centre_array("centres", centres, shape[0])
+    _check_set_centres(centres)
     return jnp.stack(_membership_list(x, centres, t))
 
 
@@ -604,7 +613,7 @@ def fuzzy_surface(
         increasing, inputs that are not real numbers or not scalars, a ``temperature`` out of its range (``check_temperature``), or an
         unknown ``defuzz``.
     """
-    _check_defuzz(defuzz)
+    check_defuzz(defuzz)
     t = check_temperature(temperature)
     idx = _rule_indices(rules, set_names)
     check_params_type(params, FuzzyParams)
@@ -650,7 +659,7 @@ def fuzzy(
       ValueError: naming the rule index, the unknown name and the accepted names; naming
         ``temperature`` and its range (0 or in ``[1e-5, 1]``); or for an unknown ``defuzz``.
     """
-    _check_defuzz(defuzz)
+    check_defuzz(defuzz)
     temperature = check_temperature(temperature)
     idx = _rule_indices(rules, set_names)
     n_sets = len(tuple(set_names))

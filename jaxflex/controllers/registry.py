@@ -19,7 +19,9 @@ import jax.numpy as jnp
 from jaxflex import checks
 from jaxflex.controllers.base import Controller, OpenLoopParams, check_finite_scalar, combine, open_loop
 from jaxflex.controllers.dfs import DFSParams, dfs
-from jaxflex.controllers.fuzzy import fuzzy, fuzzy_params
+from jaxflex.controllers.fuzzy import check_defuzz, check_temperature, fuzzy, fuzzy_params
+from jaxflex.delay import check_capacity
+from jaxflex.pade import check_order
 
 NAMES = ("open_loop", "dfs", "fuzzy", "dfs+fuzzy")
 DELAYS = ("nearest", "linear", "cubic", "pade")
@@ -91,14 +93,19 @@ def by_name(
       ``(controller, params)``; the parameters are not checked (``controller.check``).
 
     Raises:
-      ValueError: naming ``name``, ``delay`` or ``params`` and the accepted values (and
-        whatever ``dfs``/``fuzzy`` raise for their options).
+      ValueError: naming ``name``, ``delay``, ``params`` or an option and the accepted
+        values (the options are checked whether ``name`` reads them or not).
     """
     if name not in NAMES:
         raise ValueError(f"name must be one of {NAMES}; got {name!r}")
     check_finite_scalar("dt", dt, positive=True)  # DFS's own check: every name takes a sample time
     if delay not in DELAYS:
         raise ValueError(f"delay must be one of {DELAYS}; got {delay!r}")
+    # every option, whether this controller reads it or not (a Pade order of -5 passed unseen)
+    check_capacity(capacity)
+    check_order(pade_order, "pade_order")
+    check_defuzz(defuzz)
+    check_temperature(temperature)
     values = param_values(params)
     if dtype is not None:
         dtype = checks.float_dtype("dtype", dtype)
