@@ -96,18 +96,34 @@ def _use_cpu_devices(count: int | None) -> None:
             raise ValueError(f"--cpu-devices {count}: JAX already runs in this process with {running} CPU device(s); pass it before JAX's first computation") from None
 
 
+def _sources(typed: dict[str, str | None], values: Any = None, path: str | None = None) -> dict[str, str | None]:
+    """Where each of the library's parameter names got its value: the option in ``typed``
+    that was given for it, else the key of the config file ``path`` (read as ``values``) that
+    set it (``dt`` of a ``[scenarios]`` table -> ``[scenarios] dt of FILE``), else None."""
+    from collections.abc import Mapping
+
+    found: dict[str, str | None] = {}
+    if path and isinstance(values, Mapping):
+        for key, value in values.items():
+            if isinstance(value, Mapping):
+                found.update({name: f"[{key}] {sub} of {path}" for sub in value for name in (sub, f"{key} {sub}")})  # "dt must", "beam length_m must"
+            found[key] = f"{key} of {path}"
+    return {**found, **{name: option for name, option in typed.items() if option is not None}}
+
+
 @contextlib.contextmanager
 def _as_typed(options: dict[str, str | None]):
     """Within: a refusal whose message starts with one of the library's parameter names in
-    ``options`` names the option that was typed for it instead (``learning_rate must ...`` ->
-    ``--lr must ...``). ``options`` maps a name to its option, or to None where the value did
-    not come from an option (a default, --config), whose refusal keeps the library's name.
-    Wrap only the call that takes those values."""
+    ``options`` names where the value came from instead (``learning_rate must ...`` ->
+    ``--lr must ...``, ``n_modes must ...`` -> ``n_modes of FILE must ...``: ``_sources``).
+    ``options`` maps a name to that source, or to None where the value came from neither an
+    option nor the config (a default), whose refusal keeps the library's name. Wrap only the
+    call that takes those values."""
     try:
         yield
     except ValueError as err:
         message = str(err)
-        for name, option in options.items():
+        for name, option in sorted(options.items(), key=lambda item: -len(item[0])):  # "beam length_m" before "beam"
             if option is not None and message.startswith(name + " "):
                 raise ValueError(option + message[len(name):]) from None
         raise
@@ -462,7 +478,9 @@ def _tune(args: argparse.Namespace) -> int:
     from tuning.tuner import TuneConfig
 
     values = fileio.read_toml(args.config) if args.config else {}
-    with _as_typed({"learning_rate": "--lr" if args.lr is not None else None}):
+    given = {"controller": args.controller, "n_scenarios": args.scenarios, "n_heldout": args.heldout, "steps": args.steps, "seed": args.seed, "learning_rate": args.lr}
+    options = {"n_scenarios": "--scenarios", "n_heldout": "--heldout", "learning_rate": "--lr"}
+    with _as_typed(_sources({name: options.get(name, f"--{name}") if value is not None else None for name, value in given.items()}, values, args.config)):
         config = TuneConfig.from_mapping(
             values,
             controller=args.controller,
@@ -528,16 +546,19 @@ def _montecarlo(args: argparse.Namespace) -> int:
         raise ValueError(f"--config: {args.config} is a tune config: montecarlo does not read {sorted(unknown)}. Pass the tuned.json the run wrote as "
                          f"--params (it carries the arm, model and sample time), and a --config with montecarlo's keys only: {sorted(accepted)}")
     fileio.check_keys(values, accepted, "config")
+    options = {"controller": "--controller", "n_scenarios": "--scenarios", "chunk": "--chunk", "seed": "--seed", "unroll": "--unroll"}
+    sources = _sources({name: option if getattr(args, option[2:]) is not None else None for name, option in options.items()}, values, args.config)
     tuned = load_tuned(args.params) if args.params else None
-    if "scenarios" in values or tuned is not None:
-        table = values.get("scenarios", {})
-        if tuned is not None and isinstance(table, Mapping):
-            table = {"dt": tuned.dt, **table}  # the sample time it was tuned at
-        values["scenarios"] = ScenarioSpec.from_mapping({"horizon_s": 3.0, **table} if isinstance(table, Mapping) else table)
+    with _as_typed(sources):
+        if "scenarios" in values or tuned is not None:
+            table = values.get("scenarios", {})
+            if tuned is not None and isinstance(table, Mapping):
+                table = {"dt": tuned.dt, **table}  # the sample time it was tuned at
+            values["scenarios"] = ScenarioSpec.from_mapping({"horizon_s": 3.0, **table} if isinstance(table, Mapping) else table)
+        if "beam" in values:
+            values["beam"] = params_from_mapping(values["beam"])
     if isinstance(values.get("percentiles"), list):
         values["percentiles"] = tuple(values["percentiles"])
-    if "beam" in values:
-        values["beam"] = params_from_mapping(values["beam"])
     if tuned is not None and "params" in values:
         raise ValueError(f"--params {args.params} and [params] in {args.config} both set the controller's parameters: give one of them")
     if tuned is not None:
@@ -562,7 +583,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
             print(f"montecarlo: --resume: {', '.join(said[:-1]) + ' and ' if len(said) > 1 else ''}{said[-1]}, as the run in {args.out} recorded", file=sys.stderr)
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed, "unroll": args.unroll}
     values.update({k: v for k, v in overrides.items() if v is not None})
-    config = MCConfig(**values)
+    with _as_typed(sources):
+        config = MCConfig(**values)
     if unused := sorted(set(values.get("params", {})) - set(PARAMETERS[config.controller])):
         print(f"note: {config.controller} does not use [params] {', '.join(unused)} of {args.config} (it reads {', '.join(PARAMETERS[config.controller]) or 'none'})", file=sys.stderr)
     if config.n_scenarios < recorded.get("n_scenarios", 0):
@@ -599,7 +621,7 @@ def _arm_config(path: str | None):
     a tune or montecarlo config."""
     import dataclasses
 
-    from jaxflex.beam import params_from_mapping
+    from jaxflex.beam import MAX_MODES, params_from_mapping
     from jaxflex.montecarlo import MCConfig
     from tuning.tuner import TuneConfig
 
@@ -607,8 +629,9 @@ def _arm_config(path: str | None):
     # A tune or montecarlo config serves: the keys of either are accepted, a misspelt one is
     # refused (it silently left the paper's arm in place).
     fileio.check_keys(values, {f.name for f in dataclasses.fields(TuneConfig)} | {f.name for f in dataclasses.fields(MCConfig)}, "config")
-    n_modes = checks.integer(f"n_modes of {path}", values["n_modes"]) if "n_modes" in values else None
-    return values, params_from_mapping(values.get("beam", {})), n_modes
+    n_modes = checks.integer(f"n_modes of {path}", values["n_modes"], high=MAX_MODES) if "n_modes" in values else None
+    with _as_typed(_sources({}, values, path)):
+        return values, params_from_mapping(values.get("beam", {})), n_modes
 
 
 def _calibrate(args: argparse.Namespace) -> int:
@@ -619,8 +642,9 @@ def _calibrate(args: argparse.Namespace) -> int:
 
     values, arm, config_modes = _arm_config(args.config)
     # the config's sample time and integrator go into calibrated.toml, which is to replace it
-    config_dt = ScenarioSpec.from_mapping(values["scenarios"]).dt if "scenarios" in values and "dt" in values["scenarios"] else None
-    config_method = check_method(values["method"], f"method of {args.config}") if "method" in values else None
+    with _as_typed(_sources({}, values, args.config)):
+        config_dt = ScenarioSpec.from_mapping(values["scenarios"]).dt if "scenarios" in values and "dt" in values["scenarios"] else None
+        config_method = check_method(values["method"]) if "method" in values else None
     if args.record is None and (args.start, args.end, args.record_modes) != (None, None, None):
         raise ValueError("--start, --end and --record-modes apply to --record only")
     modes, record = _identify(args) if args.record is not None else (None, None)
@@ -710,12 +734,13 @@ def _stability(args: argparse.Namespace) -> int:
     from jaxflex.stability_report import run
 
     values, arm, config_modes = _arm_config(args.config)
-    scenarios = ScenarioSpec.from_mapping(values.get("scenarios", {}))
+    # tau comes from --tau or its default here (never from --config): a refusal names the option
+    typed = _sources({"k": "--k", "tau_s": "--tau" if args.tau is not None else "--tau (default 0.005 s)", "tau_max_s": "--tau-max" if args.tau_max is not None else None,
+                      "dt": "--dt" if args.dt is not None else None, "n_modes": "--modes" if args.modes is not None else None}, values, args.config)
+    with _as_typed(_sources({}, values, args.config)):  # the config's values alone, beside a typed --dt
+        scenarios = ScenarioSpec.from_mapping(values.get("scenarios", {}))
     n_modes = args.modes if args.modes is not None else config_modes or 2
     dt = args.dt if args.dt is not None else scenarios.dt
-    # tau comes from --tau or its default here (never from --config): a refusal names the option
-    typed = {"k": "--k", "tau_s": "--tau" if args.tau is not None else "--tau (default 0.005 s)", "tau_max_s": "--tau-max" if args.tau_max is not None else None,
-             "dt": "--dt" if args.dt is not None else None, "n_modes": "--modes" if args.modes is not None else None}
     with _as_typed(typed):  # --dt 0 was refused as "dt"
         print(_model_line(arm, n_modes, dt), file=sys.stderr)
     if args.tau is None:

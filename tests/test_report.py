@@ -511,13 +511,17 @@ def test_an_unknown_option_is_reported_with_its_commands_usage(capsys):
 
 def test_a_refused_option_is_named_as_typed(tmp_path, capsys):
     """The library names its parameter (learning_rate, tau_s); a value typed as an option is
-    refused under the option's name, and one read from --config keeps the library's name."""
+    refused under the option's name, and one read from --config under its key and the file's
+    name (it kept the library's name, which named no file)."""
     cases = [
         (["tune", "--lr", "nan"], "jaxflex tune: error: --lr must be a finite number > 0; got nan"),
         (["stability", "--k", "nan"], "jaxflex stability: error: --k must be finite; got nan"),
         (["stability", "--tau", "0.0055"], "jaxflex stability: error: --tau must be a whole number >= 1 of samples of dt = 0.001 s; got 0.0055 s (5.5 samples)"),
         (["stability", "--tau-max", "0.002"], "jaxflex stability: error: --tau-max must be at least the delay analysed, tau_s = 0.005 s, so that the chart holds that point; got 0.002 s"),
         (["stability", "--dt", "0"], "jaxflex stability: error: --dt must be a finite scalar > 0 (seconds); got 0.0"),  # it said "dt"
+        (["montecarlo", "--unroll", "65"], "jaxflex montecarlo: error: --unroll must be an integer in [1, 64]; got 65"),  # it said "unroll"
+        (["montecarlo", "--seed", str(2**63)], f"jaxflex montecarlo: error: --seed must be an integer in [-2**63, 2**63); got {2**63}"),
+        (["tune", "--seed", str(2**63)], f"jaxflex tune: error: --seed must be an integer in [-2**63, 2**63); got {2**63}"),
     ]
     for argv, said in cases:
         assert cli.main([*argv, "--out", str(tmp_path / "o")]) == 2
@@ -525,15 +529,29 @@ def test_a_refused_option_is_named_as_typed(tmp_path, capsys):
     config = tmp_path / "lr.toml"
     config.write_text("learning_rate = -1.0\n")
     assert cli.main(["tune", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
-    assert capsys.readouterr().err.splitlines()[-1] == "jaxflex tune: error: learning_rate must be a finite number > 0; got -1.0"
+    assert capsys.readouterr().err.splitlines()[-1] == f"jaxflex tune: error: learning_rate of {config} must be a finite number > 0; got -1.0"
     # a value from --config beside a typed option of the same name is not blamed on the option
     for text, argv, said in (
-        ("[scenarios]\ndt = -1.0\n", ["--dt", "0.001"], "error: dt must be a finite number > 0; got -1.0"),
-        ("n_modes = 0\n", ["--modes", "2"], f"error: n_modes of {config} must be an integer >= 1; got 0"),
+        ("[scenarios]\ndt = -1.0\n", ["--dt", "0.001"], f"error: [scenarios] dt of {config} must be a finite number > 0; got -1.0"),
+        ("n_modes = 0\n", ["--modes", "2"], f"error: n_modes of {config} must be an integer in [1, 100]; got 0"),  # it said ">= 1"
+        ("n_modes = 101\n", [], f"error: n_modes of {config} must be an integer in [1, 100]; got 101"),  # it named no file
+        ("[beam]\nlength_m = -1.0\n", [], f"error: [beam] length_m of {config} must be a finite number > 0; got -1.0"),
     ):
         config.write_text(text)
         assert cli.main(["stability", "--config", str(config), *argv, "--out", str(tmp_path / "o")]) == 2
         assert capsys.readouterr().err.splitlines()[-1] == f"jaxflex stability: {said}"
+    # every command that reads a config names the file and the key: tune's, montecarlo's
+    # tables and top-level keys, and calibrate's [scenarios] dt (it said "dt must be ...")
+    for command, text, said in (
+        (["tune"], "[scenarios]\ndt = \"x\"\n", f"[scenarios] dt of {config} must be a finite number > 0; got 'x'"),
+        (["tune"], "[objective]\ntip_ise = -1.0\n", f"[objective] tip_ise of {config} must be a finite number >= 0; got -1.0"),
+        (["montecarlo"], "[scenarios]\ndt = \"x\"\n", f"[scenarios] dt of {config} must be a finite number > 0; got 'x'"),
+        (["montecarlo"], "unroll = 70\n", f"unroll of {config} must be an integer in [1, 64]; got 70"),
+        (["calibrate", "--freqs", "14"], "[scenarios]\ndt = \"x\"\n", f"[scenarios] dt of {config} must be a finite number > 0; got 'x'"),
+    ):
+        config.write_text(text)
+        assert cli.main([*command, "--config", str(config), "--out", str(tmp_path / "o")]) == 2
+        assert capsys.readouterr().err.splitlines()[-1] == f"jaxflex {command[0]}: error: {said}"
     assert not (tmp_path / "o").exists()
     # --modes beyond the model's 100 is refused as typed (it said "n_modes must be ...")
     for argv in (["reproduce"], ["stability"], ["calibrate", "--freqs", "14"]):
