@@ -48,6 +48,14 @@ def integer(name: str, value: Any, low: int = 1, unit: str = "", high: int | Non
     return int(value)
 
 
+def flag(name: str, value: Any) -> bool:
+    """``value`` as a bool: True or False (a NumPy bool too); any other value is refused by
+    ``name`` (``resume="no"`` read as true)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False; got {value!r}")
+    return bool(value)
+
+
 def seed(name: str, value: Any) -> int:
     """``value`` as an int in ``SEED_RANGE``."""
     value = _plain(name, value)

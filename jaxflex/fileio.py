@@ -80,6 +80,14 @@ def sweep_stale(folder: str | os.PathLike) -> None:
             os.close(fd)
 
 
+def check_path(name: str, path: Any, what: str = "file") -> str:
+    """``path`` as a str; ValueError naming ``name`` unless it is a non-empty str or
+    os.PathLike (``what`` says what it names: a file, a folder)."""
+    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
+        raise ValueError(f"{name} must be a {what}'s path (a non-empty str or os.PathLike); got {path!r}")
+    return os.fspath(path)
+
+
 @contextlib.contextmanager
 def run_lock(folder: str | os.PathLike, name: str = "out_dir") -> Iterator[None]:
     """Hold ``folder``'s run lock (an ``flock`` on ``RUN_LOCK``, made if missing and left in
@@ -90,9 +98,7 @@ def run_lock(folder: str | os.PathLike, name: str = "out_dir") -> Iterator[None]
     ``tune``). Without ``fcntl`` (not POSIX), or on a file system without locks, nothing is
     held.
     """
-    if not isinstance(folder, (str, os.PathLike)) or not os.fspath(folder):
-        raise ValueError(f"{name} must be a folder's path (a non-empty str or os.PathLike); got {folder!r}")
-    folder = os.fspath(folder)
+    folder = check_path(name, folder, "folder")
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise ValueError(f"{name} {folder!r} is a file, not a folder")
     os.makedirs(folder, exist_ok=True)
@@ -321,6 +327,7 @@ def read_toml(path: str | os.PathLike, option: str = "--config") -> dict[str, An
       ValueError: naming ``option`` (the command-line option that gave ``path``) when the
         file cannot be read or is not valid TOML.
     """
+    path = check_path(option, path)
     try:
         with open(path, "rb") as f:
             return tomllib.load(f)

@@ -24,7 +24,7 @@ import os
 import sys
 import zipfile
 from functools import partial
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -183,6 +183,7 @@ def controller_and_params(name: str, params: dict, dt: float, capacity: int, del
 def metric_names(n_modes: int, reduction: str = REDUCTION_DOC) -> dict[str, str]:
     """Per-scenario metrics and their definitions, including the dB reduction at each mode
     (``reduction``, its "mode i" named: ``REDUCTION_DOC``, or ``REDUCTION_LABEL`` for a figure)."""
+    n_modes = beam.check_n_modes(n_modes)
     return {**METRICS, **{f"reduction_db_mode{i + 1}": reduction.replace("mode i", f"mode {i + 1}") for i in range(n_modes)}}
 
 
@@ -270,10 +271,18 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
 
     Non-finite values (a settling time of +inf: still outside the band at the end) are
     counted in ``nonfinite`` and left out of the statistics.
+
+    Raises:
+      ValueError: naming ``config`` when it is not an MCConfig, or ``columns`` when it lacks
+        a column (``diverged`` and ``metric_names``, each one value per run).
     """
-    failed = columns["diverged"].astype(bool)
-    ok = ~failed
+    checks.instance("config", config, MCConfig, "build one with MCConfig(...)")
     names = metric_names(config.n_modes)
+    if not isinstance(columns, Mapping) or (missing := sorted({*names, "diverged"} - set(columns))):
+        raise ValueError(f"columns must map each of {sorted({*names, 'diverged'})} to its values, one per run; "
+                         f"{f'missing {missing}' if isinstance(columns, Mapping) else f'got {type(columns).__name__}'}")
+    failed = np.asarray(columns["diverged"]).astype(bool)
+    ok = ~failed
     return {
         "n_scenarios": int(failed.size),
         "diverged_fraction": float(failed.mean()),
@@ -281,7 +290,7 @@ def summarize(config: MCConfig, columns: dict[str, np.ndarray]) -> dict[str, Any
         "controller": config.controller,
         "params": {name: value for name, value in param_values(config.params).items() if name in PARAMETERS[config.controller]},
         "controller_options": {name: getattr(config, name) for name in CONFIG_OPTIONS},
-        "metrics": {name: _statistics(columns[name][ok], config.percentiles) for name in names},
+        "metrics": {name: _statistics(np.asarray(columns[name])[ok], config.percentiles) for name in names},
         "metric_definitions": names,
         "percentiles": list(config.percentiles),
         "scenarios": dataclasses.asdict(config.scenarios),
@@ -304,6 +313,7 @@ def run_montecarlo(
       ValueError: bad configuration, or a resume into a folder made by another configuration.
     """
     checks.instance("config", config, MCConfig, "build one with MCConfig(...)")
+    resume, progress, figures = (checks.flag(name, value) for name, value in (("resume", resume), ("progress", progress), ("figures", figures)))
     checks.callback("on_chunk", on_chunk, "the chunk's index")
     with fileio.run_lock(out_dir, "out_dir (--out)"):
         return _run_locked(config, os.fspath(out_dir), resume, progress, figures, on_chunk)
@@ -425,8 +435,9 @@ def recorded_settings(out_dir: str | os.PathLike) -> dict[str, int]:
     it holds (none when it has no readable record, which ``run_montecarlo`` names; no
     ``n_scenarios`` in a folder written before it was recorded): ``jaxflex montecarlo --resume``
     runs at them unless told otherwise. A resume with another ``n_scenarios`` records that."""
+    out_dir = fileio.check_path("out_dir", out_dir, "folder")
     try:
-        previous = _read_meta(os.path.join(os.fspath(out_dir), META))
+        previous = _read_meta(os.path.join(out_dir, META))
     except ValueError:
         return {}
     config = previous.get("config") if isinstance(previous, dict) else None

@@ -17,7 +17,10 @@ from jaxflex.montecarlo import MCConfig, run_montecarlo
 from jaxflex.plant import discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import ScenarioSpec, batch_plant, paper_scenario, sample_scenarios
-from tuning.identify import identify_modes
+from jaxflex.montecarlo import metric_names, recorded_settings, summarize
+from tuning.calibrate import calibrate, to_toml
+from tuning.identify import identify_modes, read_record
+from tuning.run import run_tune
 from tuning.tuner import TuneConfig, tune
 
 
@@ -46,6 +49,18 @@ from tuning.tuner import TuneConfig, tune
         # a negative PSD gave NaN dB; a string leaked JAX's own type error
         (lambda: vibration_reduction_db(np.arange(10.0), -np.ones(10), np.ones(10), [4.0]), r"psd_open must be a power spectral density, >= 0 \(units\^2/Hz\); got a minimum of -1"),
         (lambda: vibration_reduction_db(np.arange(10.0), np.ones(10), "abc", [4.0]), r"psd_closed must be a real number or an array of real numbers; got 'abc'"),
+        # a second walkthrough: TypeErrors, KeyErrors and AttributeErrors from deep inside, and
+        # resume="no" read as true
+        (lambda: recorded_settings(None), r"out_dir must be a folder's path \(a non-empty str or os.PathLike\); got None"),
+        (lambda: read_record(None), r"path must be a file's path \(a non-empty str or os.PathLike\); got None"),
+        (lambda: metric_names("2"), r"n_modes must be an integer in \[1, 100\]; got '2'"),
+        (lambda: summarize("x", {}), r"config must be a MCConfig \(build one with MCConfig\(\.\.\.\)\); got str"),
+        (lambda: summarize(MCConfig(n_modes=1), {"diverged": [False]}), r"columns must map each of \[.*'reduction_db_mode1'.*\] to its values, one per run; missing \['control_effort', "),
+        (lambda: to_toml("junk"), r"calibration must be a Calibration \(the result of calibrate\(\.\.\.\)\); got str"),
+        (lambda: to_toml(calibrate([13.0], BeamParams()), dt="x"), r"dt must be a real number; got 'x'"),
+        (lambda: tune(TuneConfig(), "unused", resume="no"), r"resume must be True or False; got 'no'"),
+        (lambda: run_tune(TuneConfig(), "unused", progress=None), r"progress must be True or False; got None"),
+        (lambda: run_montecarlo(MCConfig(), "unused", figures=1), r"figures must be True or False; got 1"),
     ],
 )
 def test_bad_input_is_refused_by_name(call, match, tmp_path, monkeypatch):

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.optimize
 
 from jaxflex import beam, checks
-from jaxflex.plant import check_method, make_plant, rk4_amplified_omega
+from jaxflex.plant import check_dt, check_method, make_plant, rk4_amplified_omega
 from jaxflex.scenarios import ScenarioSpec
 
 FITTABLE = tuple(name for name in beam.BeamParams._fields if name not in ("damping_ratio", "rayleigh_alpha", "rayleigh_beta"))
@@ -318,6 +318,9 @@ def to_toml(calibration: Calibration, dt: float | None = None, method: str | Non
     the arm came from, kept so that the file serves in its place (default: neither written,
     RK4 judged at ``ScenarioSpec``'s 1 ms). An RK4 step that grows the arm's fastest mode at
     that ``dt`` is replaced by the exact zero-order hold, and the file says so."""
+    checks.instance("calibration", calibration, Calibration, "the result of calibrate(...)")
+    if dt is not None:
+        check_dt(dt)
     if method is not None:
         check_method(method)
     arm = calibration.beam

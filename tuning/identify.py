@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from jaxflex import checks
+from jaxflex import checks, fileio
 
 MAX_ROWS = 400
 """The Hankel matrix's lags span at most this many samples (it has one row more; ``N // 3``
@@ -126,6 +126,7 @@ def read_record(path: str | os.PathLike, option: str = "path") -> tuple[np.ndarr
       ValueError: naming ``option`` (the CLI passes ``"--record"``) for a file that is missing or
         not such a table.
     """
+    path = fileio.check_path(option, path)
     try:
         with open(path, encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of the first cell
             lines = [line.split("#", 1)[0].strip() for line in f]

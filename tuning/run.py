@@ -10,7 +10,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from jaxflex import beam, fileio, plotting
+from jaxflex import beam, checks, fileio, plotting
 from jaxflex.analysis import welch
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import scenario_modes_hz, scenario_plant
@@ -72,7 +72,9 @@ def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = F
     previous one and its figures (``FIGURES``) first (once the folder and any checkpoint have
     been checked), and its end writes them anew, staged and moved in together, so that a run
     stopped while drawing leaves no figure (it left those drawn so far, with no tuned.json)."""
-    out_dir = os.fspath(out_dir)
+    checks.instance("config", config, TuneConfig, "build one with TuneConfig(...)")  # before the lock makes the folder
+    resume, progress = checks.flag("resume", resume), checks.flag("progress", progress)
+    out_dir = fileio.check_path("out_dir (--out)", out_dir, "folder")
 
     def discard_previous_result() -> None:
         # A resumed run's tuned.json and figures are rewritten at its end; until then the

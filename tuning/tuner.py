@@ -405,6 +405,7 @@ def tune(
         (nothing written).
     """
     checks.instance("config", config, TuneConfig, "build one with TuneConfig(...)")
+    resume, progress = checks.flag("resume", resume), checks.flag("progress", progress)
     checks.callback("on_step", on_step, "the step number")
     checks.callback("on_start", on_start, "no arguments")
     if optimizer is not None:
