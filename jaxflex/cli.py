@@ -76,7 +76,7 @@ def _use_cpu_devices(count: int | None) -> None:
     XLA runs the kernels of one device one after another and splits each across cores; a
     device per core, each running its own shard of the batch, keeps both cores busy (more
     forward throughput on the 2-core benchmark machine: benchmarks/README.md). ``None`` leaves a device count
-    set in ``XLA_FLAGS`` alone, and leaves JAX as it is if it is already running in this
+    set in ``XLA_FLAGS`` alone (an explicit ``count`` overrides it), and leaves JAX as it is if it is already running in this
     process (``main`` called from a program).
 
     Raises:
