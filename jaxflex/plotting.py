@@ -342,6 +342,20 @@ def loss_curves(
     return fig
 
 
+def _thin_ticks(ax: plt.Axes) -> None:
+    """Fewer ticks on a linear x axis whose labels touch (-20000 ... 50000 in a third of a
+    page's width ran together), down to 3."""
+    if ax.get_xscale() != "linear":
+        return
+    renderer = ax.figure.canvas.get_renderer()
+    for nbins in (6, 4, 3):
+        boxes = [t.get_window_extent(renderer) for t in ax.get_xticklabels() if t.get_visible() and t.get_text()]
+        if all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:])):
+            return
+        ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins))
+        ax.figure.canvas.draw()  # the labels of the new ticks
+
+
 def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title: str, bins: int = 50) -> plt.Figure:
     """One histogram per metric (non-finite values left out and counted in the title), the
     metric's ``labels`` entry (its definition and unit) under it. Positive values spanning
@@ -380,6 +394,7 @@ def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title:
         ax.axis("off")
     fig.canvas.draw()  # the tick formatters choose their offset or multiplier when drawn
     for ax, name in zip(axes.ravel(), names):
+        ax.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # counts of runs
         offset = ax.xaxis.get_offset_text().get_text()
         # At the axis' lower right the offset would sit on the wrapped label: name it there.
         ax.xaxis.get_offset_text().set_visible(False)
@@ -388,6 +403,9 @@ def histograms(data: Mapping[str, np.ndarray], labels: Mapping[str, str], title:
         ax.set_ylabel("runs", fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
+    fig.canvas.draw()  # the panels' final widths, which set how many ticks the locators choose
+    for ax in axes.ravel()[: len(names)]:
+        _thin_ticks(ax)
     return fig
 
 

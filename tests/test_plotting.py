@@ -113,6 +113,19 @@ def test_histograms_show_decades_equal_values_and_empty_metrics():
     assert fig._suptitle.get_text() == "dfs: 39 of 64 runs"
 
 
+def test_histogram_tick_labels_do_not_run_together():
+    """Wide labels (-20000 ... 50000) in a third of the page's width ran into each other; the
+    counts of runs had ticks at 0.2, 0.4, ... of a run."""
+    rng = np.random.default_rng(0)
+    fig = plotting.histograms({name: rng.uniform(-12345.6, 45678.9, 100) for name in "abc"}, {}, "t")
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        boxes = [t.get_window_extent(renderer) for t in ax.get_xticklabels() if t.get_visible() and t.get_text()]
+        assert len(boxes) >= 3 and all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:]))
+        assert all(float(y).is_integer() for y in ax.get_yticks())
+
+
 def test_percentile_bands_when_every_scenario_diverged():
     # montecarlo with dfs k = 130: all 64 diverged, and tip_bands.png showed a time axis of
     # -0.04..0.04 s with a legend of bands that were not there
