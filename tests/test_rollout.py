@@ -430,7 +430,7 @@ def test_concrete_parameters_are_checked_beside_traced_ones(plant2):
     with pytest.raises(ValueError, match="k2 must be finite and > 0"):
         jax.grad(lambda k1: ise(fuzzy(), fuzzy_params(k1, -0.3, 1.0)))(1.02)
     with pytest.raises(ValueError, match="angle_centres must have shape"):
-        jax.grad(lambda k3: ise(fuzzy(), fuzzy_params(1.02, 0.3, k3, centres=[1.0, 0.5, 0.0, -0.5, -1.0])))(1.0)
+        jax.grad(lambda k3: ise(fuzzy(), fuzzy_params(1.02, 0.3, k3)._replace(angle_centres=jnp.asarray([1.0, 0.5, 0.0, -0.5, -1.0]))))(1.0)
     with pytest.raises(ValueError, match="k must be finite"):
         jax.grad(lambda tau: ise(dfs(interpolation="linear"), DFSParams(float("nan"), tau)))(0.0055)
     assert np.isfinite(float(jax.grad(lambda k: ise(dfs(), DFSParams(k, 0.005)))(55.0)))
