@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflex import fileio
+from jaxflex import checks, fileio
+from jaxflex.analysis import stability
 from jaxflex.controllers import Controller, DFSParams, by_name, combine
 from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy_params
 
@@ -49,6 +50,13 @@ class TunedController(NamedTuple):
 
 def _logit(p: jax.Array) -> jax.Array:
     return jnp.log(p) - jnp.log1p(-p)
+
+
+def check_capacity(capacity: int) -> int:
+    """A tuned DFS's buffer capacity (samples): in [2, ``stability.MAX_HISTORY``], since tau
+    is tuned from one sample to the whole buffer (1 left it no room: a division by zero) and
+    the tuner's stability penalty builds the sampled loop over the buffer."""
+    return checks.integer("capacity", capacity, 2, unit="samples", high=stability.MAX_HISTORY)
 
 
 def tau_bounds(dt: float, capacity: int) -> tuple[float, float]:
@@ -116,13 +124,14 @@ def tuned_controller(name: str, dt: float = 1e-3, capacity: int = 64, delay: str
     Args:
       name: one of CONTROLLERS.
       dt: sample time (s).
-      capacity: delay-buffer capacity (samples); tau is tuned in [dt, capacity dt].
+      capacity: delay-buffer capacity (samples, ``check_capacity``); tau is tuned in [dt, capacity dt].
       delay: how DFS reads the delayed angle (one of DELAYS); all are differentiable in tau.
       pade_order: Pade order with ``delay="pade"``.
       temperature: fuzzy smoothing temperature (0 = the faithful controller).
     """
     if delay not in DELAYS:
         raise ValueError(f"delay must be one of {DELAYS}; got {delay!r}")
+    capacity = check_capacity(capacity)
     if name == "dfs":
         return TunedController(name, *_dfs_parts(dt, capacity, delay, pade_order))
     if name == "fuzzy":

@@ -32,7 +32,6 @@ from jaxflex.beam import BeamParams
 from jaxflex.controllers.dfs import DFSParams
 from jaxflex.controllers.fuzzy import check_temperature
 from jaxflex.controllers.registry import PARAMETERS, param_values
-from jaxflex.delay import MAX_CAPACITY
 from jaxflex.heartbeat import Heartbeat
 from jaxflex.pade import check_order
 from jaxflex.plant import DiscretePlant, check_method, discretize, make_plant
@@ -40,7 +39,7 @@ from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario, ScenarioSpec, batch_modes_hz, batch_plant, check_plants, pad_batch, sample_scenarios
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
-from tuning.transforms import CONTROLLERS, DELAYS, TunedController, tuned_controller
+from tuning.transforms import CONTROLLERS, DELAYS, TunedController, check_capacity, tuned_controller
 
 CHECKPOINT = "checkpoint.npz"
 REFERENCES = ("paper", "initial")
@@ -109,8 +108,7 @@ class TuneConfig:
         for name in ("n_scenarios", "n_heldout", "steps", "eval_every", "patience", "checkpoint_every"):
             object.__setattr__(self, name, checks.integer(name, getattr(self, name)))
         object.__setattr__(self, "n_modes", beam.check_n_modes(self.n_modes))
-        # two samples at least: the tuned delay runs from one sample to the buffer's length
-        object.__setattr__(self, "capacity", checks.integer("capacity", self.capacity, 2, unit="samples", high=MAX_CAPACITY))
+        object.__setattr__(self, "capacity", check_capacity(self.capacity))
         object.__setattr__(self, "pade_order", check_order(self.pade_order, "pade_order"))
         for name in ("learning_rate", "clip_norm"):
             object.__setattr__(self, name, checks.number(name, getattr(self, name), strict=True))

@@ -62,7 +62,7 @@ from __future__ import annotations
 
 import math
 from functools import partial
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -122,8 +122,24 @@ def _check_gain_and_delay(k: ArrayLike, tau_s: ArrayLike) -> None:
         check_delay(tau_s)
 
 
+MAX_HISTORY = 2048
+"""The longest delay history of the sampled loop (samples): its matrix has ``n_x + n_hist``
+rows, and the eigenvalues of one took 4.2 s at 2,000 on the 2-core machine, growing as the
+cube (10^6 aborted the process)."""
+
+
 def _check_delay_steps(delay_steps: int, name: str = "delay_steps") -> int:
-    return checks.integer(name, delay_steps, unit="samples")
+    return checks.integer(name, delay_steps, unit="samples", high=MAX_HISTORY)
+
+
+def _one_plant(plant: Any, check: Callable[[Any], Any]) -> Any:
+    """``check(plant)`` (``check_continuous``, ``check_sampled`` or ``check_plant``), and one
+    plant, not a batch (whose matrices failed deep inside, or were read as one larger plant)."""
+    plant = check(plant)
+    matrix = plant.A if isinstance(plant, LinearPlant) else plant.Ad
+    if jnp.ndim(matrix) != 2:
+        raise ValueError(f"plant must be one plant (a state matrix of shape (n, n)); got a batch, of shape {jnp.shape(matrix)}: analyse its plants one at a time")
+    return plant
 
 
 def _whole_delay(delay_steps: ArrayLike) -> int:
@@ -132,7 +148,7 @@ def _whole_delay(delay_steps: ArrayLike) -> int:
     2.9999999999999996``); else ValueError naming ``delay_steps`` as given."""
     arr = np.asarray(delay_steps)
     if arr.ndim == 0 and arr.dtype.kind == "f" and np.isfinite(arr) and whole_samples(float(arr)) and round(float(arr)) >= 1:
-        return int(round(float(arr)))
+        return _check_delay_steps(int(round(float(arr))))
     return _check_delay_steps(arr.item() if arr.ndim == 0 and arr.dtype.kind in "iu" else delay_steps)
 
 
@@ -151,7 +167,7 @@ def _check_n_cheb(n_cheb: int) -> int:
 
 def _plant_or_default(plant: LinearPlant | None, n_modes: int) -> LinearPlant:
     beam.check_n_modes(n_modes)
-    return make_plant(n_modes=n_modes) if plant is None else check_continuous(plant)
+    return make_plant(n_modes=n_modes) if plant is None else _one_plant(plant, check_continuous)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -161,7 +177,7 @@ def _plant_or_default(plant: LinearPlant | None, n_modes: int) -> LinearPlant:
 def loop_vectors(plant: LinearPlant | DiscretePlant) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """NumPy float64 ``(A, b, c)``: state matrix (``Ad`` for a sampled plant), torque input
     column [n_x] and the measured-angle row ``c = C[0]`` [n_x]."""
-    check_plant(plant)
+    _one_plant(plant, check_plant)
     if isinstance(plant, DiscretePlant):
         A, B = plant.Ad, plant.Bd
     else:
@@ -254,7 +270,7 @@ def _open_loop_polynomials(plant: LinearPlant) -> tuple[np.ndarray, np.ndarray]:
 
 def characteristic_polynomials(plant: LinearPlant, k: ArrayLike) -> CharacteristicPolynomials:
     """P(s) and Q(s) of ``Delta(s, tau) = P(s) + Q(s) e^{-s tau}`` for the DFS gain k."""
-    check_continuous(plant)
+    _one_plant(plant, check_continuous)
     k = check_gain(k)
     a, N = _open_loop_polynomials(plant)
     return CharacteristicPolynomials(a + k * N, -k * N, a, N, k)
@@ -262,9 +278,11 @@ def characteristic_polynomials(plant: LinearPlant, k: ArrayLike) -> Characterist
 
 def delta(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, s: ArrayLike) -> np.ndarray:
     """``Delta(s, tau) = det(sI - A + k b c (1 - e^{-s tau}))`` evaluated directly (complex s, any shape)."""
-    check_continuous(plant)
+    _one_plant(plant, check_continuous)
     A, b, c = loop_vectors(plant)
     k, tau = check_gain(k), check_delay(tau_s)
+    if isinstance(s, jax.core.Tracer) or np.asarray(s).dtype.kind not in "iufc":  # a bool, a string, an object
+        raise ValueError(f"s must be a complex number or an array of them (concrete: delta is NumPy); got {s!r}")
     s = np.asarray(s, np.complex128)
     z = np.exp(-s * tau)
     mats = s[..., None, None] * np.eye(A.shape[0]) - A + (k * (1 - z))[..., None, None] * np.outer(b, c)
@@ -371,7 +389,7 @@ def crossing_frequencies(plant: LinearPlant, k: ArrayLike) -> np.ndarray:
     """All w > 0 (rad/s, ascending) with ``|P(jw)| = |Q(jw)|``: positive real roots of the
     polynomial in ``v = w^2``, polished by ``brentq`` on ``1 + 2 k Re G(jw) = 0``, united with the
     sign changes of a dense logarithmic scan of the same function."""
-    check_continuous(plant)
+    _one_plant(plant, check_continuous)
     k = check_gain(k)
     if k == 0.0:
         return np.zeros((0,))
@@ -431,7 +449,7 @@ def critical_delays(plant: LinearPlant, k: ArrayLike, tau_max_s: ArrayLike = 0.0
       k: DFS gain (N*m/rad), finite.
       tau_max_s: list critical delays up to this (s), > 0.
     """
-    check_continuous(plant)
+    _one_plant(plant, check_continuous)
     k = check_gain(k)
     tau_max = check_finite_scalar("tau_max_s", tau_max_s, positive=True)
     A, b, c = loop_vectors(plant)
@@ -486,6 +504,7 @@ def unstable_root_count(result: CriticalDelays, tau_s: ArrayLike) -> np.ndarray:
       result: :func:`critical_delays` output.
       tau_s: delays (s), any shape, each <= ``result.tau_max_s``.
     """
+    checks.instance("result", result, CriticalDelays, "the result of critical_delays(...)")
     tau = checks.real_array("tau_s", tau_s).astype(np.float64)
     if tau.size == 0:
         raise ValueError("tau_s must hold at least one delay (s); got an empty array")
@@ -552,7 +571,7 @@ def generator_matrix(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, n_cheb:
     both); concrete ones are checked; ``n_cheb`` (M) is static.
     """
     _check_gain_and_delay(k, tau_s)
-    return _generator(check_continuous(plant), k, tau_s, _check_n_cheb(n_cheb))
+    return _generator(_one_plant(plant, check_continuous), k, tau_s, _check_n_cheb(n_cheb))
 
 
 def _generator(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, m: int) -> jax.Array:
@@ -582,7 +601,7 @@ def characteristic_roots(plant: LinearPlant, k: ArrayLike, tau_s: ArrayLike, n_c
     """Approximate characteristic roots (rad/s, complex), structural root(s) deflated, sorted by
     decreasing real part. Only the rightmost few are accurate. Concrete k, tau are checked;
     traced ones are fine (vmap/jit over them with the plant closed over)."""
-    check_continuous(plant)
+    _one_plant(plant, check_continuous)
     _check_gain_and_delay(k, tau_s)
     m = _check_n_cheb(n_cheb)
     dtype = plant.A.dtype
@@ -618,7 +637,7 @@ def _check_sampled_args(k: ArrayLike, delay_steps: ArrayLike, n_hist: int | None
         try:
             whole = _whole_delay(delay_steps)
         except ValueError as err:
-            if arr.ndim == 0 and arr.dtype.kind == "f" and float(arr) >= 1:  # 5.5 samples: say where a fractional delay goes
+            if arr.ndim == 0 and arr.dtype.kind == "f" and float(arr) >= 1 and not whole_samples(float(arr)):  # 5.5 samples: say where a fractional delay goes
                 raise ValueError(f"{err}; a fractional delay needs n_hist, the history length (an integer >= the delay)") from None
             raise
         return whole, whole
@@ -645,7 +664,7 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
         floor(d) + 1 are neither shifted nor read, so they add only semisimple zero
         eigenvalues (no defective block whose computed eigenvalues would scatter by
         eps^(1/size)).
-      n_hist: static history length >= d.
+      n_hist: static history length >= d, at most ``MAX_HISTORY``.
       interpolation: how a fractional d is read, ``"linear"`` or ``"cubic"`` (4-point
         Lagrange, as ``dfs(interpolation="cubic")``; slots up to the last one it reads are live).
 
@@ -653,7 +672,7 @@ def sampled_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
       [n_x + n_hist, n_x + n_hist] matrix.
     """
     n_hist, delay_steps = _check_sampled_args(k, delay_steps, n_hist)
-    return _loop_matrix(check_sampled(plant), k, delay_steps, n_hist, interpolation)
+    return _loop_matrix(_one_plant(plant, check_sampled), k, delay_steps, n_hist, interpolation)
 
 
 def _read(delay_steps: ArrayLike, n_hist: int, interpolation: str, dtype) -> tuple[jax.Array, jax.Array]:
@@ -712,7 +731,7 @@ def deflated_loop_matrix(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayL
     plant must be concrete.
     """
     n_hist, delay_steps = _check_sampled_args(k, delay_steps, n_hist)
-    return _deflated(plant, k, delay_steps, jnp.asarray(structural_directions(check_sampled(plant)), plant.Ad.dtype), n_hist, interpolation)
+    return _deflated(plant, k, delay_steps, jnp.asarray(structural_directions(_one_plant(plant, check_sampled)), plant.Ad.dtype), n_hist, interpolation)
 
 
 def pade_loop_matrix(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLike, order: int, hold: str = "foh") -> jax.Array:
@@ -724,7 +743,7 @@ def pade_loop_matrix(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLike, order
     rollout starts the filter at its steady state for ``theta_0``. k and tau_s (> 0) may be
     traced; the plant must be concrete.
     """
-    filt, _ = _sampled_pade(plant, k, tau_s, order, hold, jnp.zeros((1, 1), check_sampled(plant).Ad.dtype))
+    filt, _ = _sampled_pade(plant, k, tau_s, order, hold, jnp.zeros((1, 1), _one_plant(plant, check_sampled).Ad.dtype))
     return _pade_loop(plant, k, filt)
 
 
@@ -734,7 +753,7 @@ def deflated_pade_loop_matrix(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLi
     steady state (whose output is that angle). Its eigenvalues differ from the buffer loop's:
     at k = 150, tau = 5 ms the order-1 loop decays (0.989) where the exact delay's grows (1.063).
     """
-    v = jnp.asarray(structural_directions(check_sampled(plant)), plant.Ad.dtype)
+    v = jnp.asarray(structural_directions(_one_plant(plant, check_sampled)), plant.Ad.dtype)
     filt, xi_eq = _sampled_pade(plant, k, tau_s, order, hold, plant.C[:1] @ v)  # xi_eq: [N, n0]
     q2 = _deflation_basis(jnp.concatenate([v, xi_eq], axis=0))
     return q2.T @ _pade_loop(plant, k, filt) @ q2
@@ -745,6 +764,8 @@ def _sampled_pade(plant: DiscretePlant, k: ArrayLike, tau_s: ArrayLike, order: i
     states for the angles ``theta`` [1, n] (one ``expm``)."""
     if not isinstance(k, jax.core.Tracer):
         check_gain(k)
+    if not isinstance(tau_s, jax.core.Tracer):
+        checks.real_array("tau_s", tau_s, scalar=True)  # a string failed in NumPy's float(); pade names the range
     return pade.sampled_delay(jnp.asarray(tau_s, plant.Ad.dtype), pade.check_order(order), float(plant.dt), theta, hold)
 
 
@@ -777,7 +798,7 @@ def sampled_eigenvalues(plant: DiscretePlant, k: ArrayLike, delay_steps: ArrayLi
     structural direction, by its known eigenvector ``[v, c v, ..., c v]``), by decreasing modulus.
     The plant must be concrete (closed over under jit/vmap); k and the delay may be traced, and
     with ``n_hist`` given the delay may be fractional (see ``sampled_loop_matrix``)."""
-    check_sampled(plant)
+    _one_plant(plant, check_sampled)
     n_hist, delay_steps = _check_sampled_args(k, delay_steps, n_hist)
     dtype = plant.Ad.dtype
     v = jnp.asarray(structural_directions(plant), dtype)
@@ -822,7 +843,7 @@ class StabilityChart(NamedTuple):
 def sampled_radius_grid(plant: DiscretePlant, k_values: ArrayLike, delay_steps: ArrayLike) -> jax.Array:
     """[n_tau, n_k] sampled spectral radii: one jitted ``vmap(vmap(...))`` over delays and gains
     (every delay padded to the longest history, so there is one compilation)."""
-    check_sampled(plant)
+    _one_plant(plant, check_sampled)
     k_values, delay_steps = _grid_axes(k_values=k_values, delay_steps=delay_steps)
     delay_steps = np.asarray([_whole_delay(d) for d in delay_steps.tolist()])
     for kv in k_values.tolist():
@@ -843,7 +864,7 @@ def _radius_grid(plant, k_values, delay_steps, v, n_hist):
 def rightmost_real_grid(plant: LinearPlant, k_values: ArrayLike, tau_s: ArrayLike, n_cheb: int = DEFAULT_N_CHEB) -> jax.Array:
     """[n_tau, n_k] real part of the rightmost non-structural root, batched with ``vmap``, for
     non-empty 1-D ``k_values`` and ``tau_s`` (s)."""
-    check_continuous(plant)
+    _one_plant(plant, check_continuous)
     m = _check_n_cheb(n_cheb)
     _grid_axes(k_values=k_values, tau_s=tau_s)
     for kv in np.asarray(k_values).tolist():
