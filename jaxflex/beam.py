@@ -352,13 +352,24 @@ def modal_matrices(params: BeamParams, n_modes: int = 2) -> ModalMatrices:
 
     Returns:
       ModalMatrices with [n+1, n+1] matrices and [n+1] input/output maps.
+
+    Raises:
+      ValueError: naming a field not representable in the matrices' dtype
+        (``check_beam_params(representable=True)``), or the arm when, concrete, its matrices
+        are not finite there (a 1e-30 m thick arm gave inf and 0 entries).
     """
     n_modes = check_n_modes(n_modes)
-    check_beam_params(params)
+    check_beam_params(params, representable=True)
     M, K, torque_input, tip_force_input, tip_deflection = _structural(params, n_modes)
     alpha, beta = rayleigh_coefficients(params)
     D = alpha * M + beta * K
-    return ModalMatrices(M, K, D, torque_input, tip_force_input, tip_deflection)
+    matrices = ModalMatrices(M, K, D, torque_input, tip_force_input, tip_deflection)
+    if not any(isinstance(m, jax.core.Tracer) for m in matrices) and not (
+        all(np.all(np.isfinite(np.asarray(m))) for m in matrices) and np.all(np.diag(np.asarray(K))[1:] > 0)
+    ):
+        raise ValueError(f"the {n_modes}-mode model's matrices must be finite, with each flexible mode's stiffness > 0, in {M.dtype}; "
+                         f"got inf, NaN or 0 for {params} (check the units, or compute in float64 with jax_enable_x64, --x64)")
+    return matrices
 
 
 HUBS = ("free", "clamped")
@@ -434,9 +445,13 @@ def exact_natural_frequencies_hz(params: BeamParams, n_freqs: int = 2) -> np.nda
     rho_a = p["density_kg_m3"] * p["width_m"] * p["thickness_m"]
     e_i = p["youngs_modulus_pa"] * p["width_m"] * p["thickness_m"] ** 3 / 12.0
     length = p["length_m"]
-    mu = p["hub_inertia_kg_m2"] / (rho_a * length**3)
-    j = p["payload_inertia_kg_m2"] / (rho_a * length**3)
-    r = p["payload_mass_kg"] / (rho_a * length)
+    with np.errstate(all="ignore"):  # the arm's own scales, in float64: an extreme arm overflows them (1e-200 m: a ZeroDivisionError)
+        mu, j, r = (np.float64(p[name]) / (rho_a * length**power) for name, power in (("hub_inertia_kg_m2", 3), ("payload_inertia_kg_m2", 3), ("payload_mass_kg", 1)))
+        scale = np.float64(e_i) / rho_a
+    if not all(np.isfinite([mu, j, r, rho_a, e_i, scale])) or scale == 0:
+        raise ValueError(f"params: the arm's frequency equation must be finite in float64; got hub and payload ratios {mu:g}, {j:g}, {r:g} "
+                         f"and EI / (rho A) = {scale:g} for {params} (check the units)")
+    mu, j, r = float(mu), float(j), float(r)
 
     def f(lam: float) -> float:
         return _exact_determinant(lam, mu, j, r)
@@ -459,5 +474,8 @@ def exact_natural_frequencies_hz(params: BeamParams, n_freqs: int = 2) -> np.nda
             roots.append(0.5 * (lo + hi))
             if len(roots) == n_freqs:
                 break
+    if len(roots) < n_freqs:
+        raise ValueError(f"params: the scan found {len(roots)} of the {n_freqs} frequencies asked for (n_freqs) in lambda = beta L up to {grid[-1]:.4g} "
+                         f"for {params}: the hub and payload ratios {mu:g}, {j:g}, {r:g} are beyond what it resolves")
     lam = np.array(roots)
-    return lam**2 / length**2 * math.sqrt(e_i / rho_a) / (2 * math.pi)
+    return lam**2 / length**2 * math.sqrt(scale) / (2 * math.pi)

@@ -142,19 +142,28 @@ def check_plants(spec: "ScenarioSpec", params: beam.BeamParams, n_modes: int, me
             raise ValueError(f"the scenarios' plant uncertainty reaches an arm ({where}) that cannot be run: {err}") from err
 
 
+MAX_STEPS = 10**7
+"""The most samples a horizon may hold: a scenario stores its force and noise for each (120 MB
+in float32 at 10^7, 2.8 hours at 1 ms; 10^12 ran out of memory with nothing named)."""
+
+
 def horizon_steps(horizon_s: float, dt: float) -> int:
     """Number of samples in ``horizon_s`` seconds at ``dt`` (both concrete, > 0), rounded to
     the nearest whole sample: a 1.004 s horizon at dt = 0.01 s runs 100 samples.
 
     Raises:
       ValueError: naming ``horizon_s`` or ``dt`` when it is not a finite number > 0 (a string
-        such as ``"3"`` or a bool is refused, not converted), or a horizon shorter than ``dt``.
+        such as ``"3"`` or a bool is refused, not converted), or a horizon shorter than ``dt``
+        or longer than ``MAX_STEPS`` samples.
     """
     horizon_s = checks.number("horizon_s", horizon_s, strict=True, unit="seconds")
     dt = checks.number("dt", dt, strict=True, unit="seconds")
     steps = int(round(horizon_s / dt))
     if steps < 1:
         raise ValueError(f"horizon_s must cover at least one sample of dt = {dt}; got {horizon_s}")
+    if steps > MAX_STEPS:
+        raise ValueError(f"horizon_s / dt must be at most {MAX_STEPS:.0e} samples (each scenario holds its force and noise for every one); "
+                         f"got {horizon_s:g} s at dt = {dt:g} s, {steps:.3g} samples")
     return steps
 
 
@@ -351,6 +360,8 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
     checks.instance("spec", spec, ScenarioSpec, "build one with ScenarioSpec(...) or ScenarioSpec.from_mapping({...})")
     if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or _is_raw_key(key))):
         raise ValueError(f"key must be a JAX PRNG key (jax.random.key(seed)); got {type(key).__name__} {key!r}")
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape != ():
+        raise ValueError(f"key must be one PRNG key (shape ()); got a batch of shape {key.shape}: n draws the {n!r} scenarios from one key")
     n = checks.integer("n (number of scenarios)", n)
     n_modes = beam.check_n_modes(n_modes)
     dtype = checks.float_dtype("dtype", dtype)

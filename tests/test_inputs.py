@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from jaxflex.analysis import vibration_reduction_db
-from jaxflex.analysis.stability import rightmost_real_grid
-from jaxflex.beam import BeamParams
+from jaxflex.analysis.metrics import run_diverged
+from jaxflex.analysis.psd import band_mask, band_peak
+from jaxflex.analysis.stability import delta, pade_loop_matrix, rightmost_real_grid, spectral_radius, unstable_root_count
+from jaxflex.beam import BeamParams, exact_natural_frequencies_hz, modal_matrices
 from jaxflex.controllers import DFSParams, by_name, combine, dfs, fuzzy
 from jaxflex.controllers.base import Controller
 from jaxflex.controllers.fuzzy import FuzzyParams, fuzzy_params, fuzzy_surface
@@ -21,7 +23,17 @@ from jaxflex.montecarlo import metric_names, recorded_settings, summarize
 from tuning.calibrate import calibrate, to_toml
 from tuning.identify import identify_modes, read_record
 from tuning.run import run_tune
+from tuning.transforms import tuned_controller
 from tuning.tuner import TuneConfig, tune
+
+
+def _sampled_plant():
+    return discretize(make_plant(), 1e-3)
+
+
+def _float32(call):
+    with jax.enable_x64(False):
+        return call()
 
 
 @pytest.mark.parametrize(
@@ -61,6 +73,30 @@ from tuning.tuner import TuneConfig, tune
         (lambda: tune(TuneConfig(), "unused", resume="no"), r"resume must be True or False; got 'no'"),
         (lambda: run_tune(TuneConfig(), "unused", progress=None), r"progress must be True or False; got None"),
         (lambda: run_montecarlo(MCConfig(), "unused", figures=1), r"figures must be True or False; got 1"),
+        # 10^6 samples of history aborted the process; 1 sample of buffer divided by zero
+        (lambda: spectral_radius(_sampled_plant(), 55.0, 10**6), r"delay_steps must be an integer in \[1, 2048\] \(samples\); got 1000000$"),
+        (lambda: spectral_radius(_sampled_plant(), 55.0, 3, n_hist=10**6), r"n_hist must be an integer in \[1, 2048\] \(samples\); got 1000000"),
+        (lambda: tuned_controller("dfs", capacity=1), r"capacity must be an integer in \[2, 2048\] \(samples\); got 1"),
+        (lambda: TuneConfig(capacity=4096), r"capacity must be an integer in \[2, 2048\] \(samples\); got 4096"),
+        # a batch of plants failed deep in NumPy; a bool s was read as 1 + 0j
+        (lambda: spectral_radius(jax.tree.map(lambda a: jnp.stack([a, a]), _sampled_plant()), 55.0, 5), r"plant must be one plant \(a state matrix of shape \(n, n\)\); got a batch, of shape \(2, 6, 6\)"),
+        (lambda: delta(make_plant(), 55.0, 0.005, True), r"s must be a complex number or an array of them \(concrete: delta is NumPy\); got True"),
+        (lambda: pade_loop_matrix(_sampled_plant(), 55.0, "x", 4), r"tau_s must be a real number; got 'x'"),
+        (lambda: unstable_root_count("junk", 0.01), r"result must be a CriticalDelays \(the result of critical_delays\(\.\.\.\)\); got str"),
+        # inf entries returned for an arm 1e-30 m thick in float32, 0 stiffness at 1e-120 m in
+        # float64; a ZeroDivisionError at 1e-200 m long
+        (lambda: _float32(lambda: modal_matrices(BeamParams(thickness_m=1e-30))), r"the 2-mode model's matrices must be finite, with each flexible mode's stiffness > 0, in float32; got inf, NaN or 0"),
+        (lambda: modal_matrices(BeamParams(thickness_m=1e-120)), r"the 2-mode model's matrices must be finite, with each flexible mode's stiffness > 0, in float64; got inf, NaN or 0 for BeamParams\("),
+        (lambda: exact_natural_frequencies_hz(BeamParams(length_m=1e-200)), r"params: the arm's frequency equation must be finite in float64"),
+        # JAX's TypeError on a string; argmax of an empty sequence
+        (lambda: band_mask("abc", 10.0), r"freqs must be a real number or an array of real numbers; got 'abc'"),
+        (lambda: band_peak([], [], 10.0), r"freqs must be a non-empty 1-D array, one value per frequency bin; got shape \(0,\)"),
+        (lambda: run_diverged("x", 1.0, 0.9), r"blew_up must be a bool or an array of bools \(RunMetrics.diverged\); got 'x'"),
+        (lambda: run_diverged(False, "x", 0.9), r"peak_tip_m must be a real number or an array of real numbers; got 'x'"),
+        # a batch of keys; a horizon of 10^12 samples ran out of memory with nothing named
+        (lambda: sample_scenarios(ScenarioSpec(horizon_s=0.01), jax.random.split(jax.random.key(0), 3), 3), r"key must be one PRNG key \(shape \(\)\); got a batch of shape \(3,\)"),
+        (lambda: ScenarioSpec(dt=1e-9), r"horizon_s / dt must be at most 1e\+07 samples .*; got 1 s at dt = 1e-09 s, 1e\+09 samples"),
+        (lambda: paper_scenario(_sampled_plant(), 1e9), r"horizon_s / dt must be at most 1e\+07 samples"),
     ],
 )
 def test_bad_input_is_refused_by_name(call, match, tmp_path, monkeypatch):

@@ -185,10 +185,15 @@ def run_diverged(blew_up: ArrayLike, peak_tip_m: ArrayLike, length_m: ArrayLike)
 
     Raises:
       ValueError: naming ``length_m`` when, concrete, it is not a finite number > 0 (a
-        length of 0 or NaN called every run, or none, diverged).
+        length of 0 or NaN called every run, or none, diverged), or a concrete ``blew_up``
+        that is not boolean or ``peak_tip_m`` that is not real.
     """
     if is_concrete(length_m):
         check_finite_scalar("length_m", length_m, positive=True, unit="m")
+    if is_concrete(blew_up) and np.asarray(blew_up).dtype.kind != "b":
+        raise ValueError(f"blew_up must be a bool or an array of bools (RunMetrics.diverged); got {blew_up!r}")
+    if is_concrete(peak_tip_m):
+        checks.real_array("peak_tip_m", peak_tip_m)
     return jnp.logical_or(blew_up, jnp.asarray(peak_tip_m) > length_m)
 
 

@@ -268,6 +268,14 @@ def _check_band(f0: ArrayLike | None, rel_band: Any) -> None:
         check_finite_scalar("f0", f0, positive=True, unit="Hz")
 
 
+def _check_bins(name: str, values: ArrayLike) -> None:
+    """A concrete ``values`` must be a non-empty 1-D real array ([F], by bin), by ``name``."""
+    if is_concrete(values):
+        arr = checks.real_array(name, values)
+        if arr.ndim != 1 or arr.size == 0:
+            raise ValueError(f"{name} must be a non-empty 1-D array, one value per frequency bin; got shape {arr.shape}")
+
+
 def band_mask(freqs: ArrayLike, f0: ArrayLike, rel_band: float = 0.15) -> jax.Array:
     """Bins inside the band ``|f - f0| <= rel_band * f0``.
 
@@ -280,6 +288,7 @@ def band_mask(freqs: ArrayLike, f0: ArrayLike, rel_band: float = 0.15) -> jax.Ar
       ``[F]`` bool.
     """
     _check_band(f0, rel_band)
+    _check_bins("freqs", freqs)
     freqs = jnp.asarray(freqs)
     f0 = jnp.asarray(f0)
     return jnp.abs(freqs - f0) <= rel_band * f0
@@ -300,6 +309,8 @@ def band_peak(freqs: ArrayLike, psd: ArrayLike, f0: ArrayLike, rel_band: float =
       to the lowest frequency.
     """
     _check_band(f0, rel_band)
+    _check_bins("freqs", freqs)
+    _check_bins("psd", psd)
     freqs = jnp.asarray(freqs)
     psd = jnp.asarray(psd)
     if freqs.ndim != 1 or psd.shape != freqs.shape:
