@@ -153,13 +153,16 @@ class MCConfig:
         return min(self.chunk, self.n_scenarios)
 
     def fingerprint_fields(self) -> dict[str, Any]:
-        """What a resumed run must share with the folder, as plain JSON values: everything but
-        ``n_scenarios`` (more may be asked of a resumed run), ``chunk`` (the folder records
+        """What a resumed run must share with the folder, as plain JSON values: everything (the
+        parameters the controller reads, by value) but ``n_scenarios`` (more may be asked of a resumed run), ``chunk`` (the folder records
         the chunk it was run with) and what only the summary and the figures read
         (``percentiles``, ``band_scenarios``: a resume may ask for others), and the dtype and
         the program (``fileio.program``)."""
         d = dataclasses.asdict(self)
         d["beam"] = self.beam._asdict()
+        # the parameters the controller runs with: names it does not read, or a paper value
+        # given or left out, change nothing (an edited unused k refused a resume)
+        d["params"] = {name: value for name, value in param_values(self.params).items() if name in PARAMETERS[self.controller]}
         for name in ("n_scenarios", "chunk", *_SUMMARY_ONLY):
             d.pop(name)
         d["dtype"] = str(jnp.zeros(()).dtype)

@@ -846,3 +846,14 @@ def test_a_mode_above_nyquist_has_no_reduction(tmp_path):
     metrics = run_montecarlo(config, tmp_path, progress=False, figures=False)["metrics"]
     assert (metrics["reduction_db_mode2"]["count"], metrics["reduction_db_mode2"]["nonfinite"]) == (0, 3)
     assert metrics["reduction_db_mode1"]["count"] == 3 and abs(metrics["reduction_db_mode1"]["max"]) < 1e-6
+
+
+def test_parameters_the_controller_does_not_read_leave_the_fingerprint():
+    """A [params] k edited under the fuzzy controller, or a paper value given rather than left
+    out, is the same run: a resume was refused as another configuration."""
+    spec = ScenarioSpec(horizon_s=0.05)
+    fuzzy = MCConfig(controller="fuzzy", n_scenarios=2, scenarios=spec)
+    assert MCConfig(controller="fuzzy", params={"k": 30.0}, n_scenarios=2, scenarios=spec).fingerprint() == fuzzy.fingerprint()
+    assert MCConfig(controller="fuzzy", params={"k1": 1.02}, n_scenarios=2, scenarios=spec).fingerprint() == fuzzy.fingerprint()
+    assert MCConfig(controller="fuzzy", params={"k1": 1.5}, n_scenarios=2, scenarios=spec).fingerprint() != fuzzy.fingerprint()
+    assert MCConfig(controller="dfs", params={"k": 30.0}, n_scenarios=2, scenarios=spec).fingerprint() != MCConfig(controller="dfs", n_scenarios=2, scenarios=spec).fingerprint()
