@@ -438,19 +438,28 @@ def exact_natural_frequencies_hz(params: BeamParams, n_freqs: int = 2) -> np.nda
     bisection, in NumPy float64. Not differentiable: it is the reference that the
     assumed-mode frequencies converge to from above as n grows (slowly with a tip rotary
     inertia: see ``BeamParams.payload_inertia_kg_m2``).
+
+    Raises:
+      ValueError: naming ``n_freqs`` out of [1, ``MAX_MODES``], a field out of its range
+        (``check_beam_params``), or ``params`` when the arm's scales or frequencies are not
+        finite and > 0 in float64 (an extreme arm, 1e-200 or 1e200 m long), or its roots are
+        beyond the scan.
     """
     n_freqs = checks.integer("n_freqs", n_freqs, high=MAX_MODES)
     check_beam_params(params)
-    p = {name: float(np.asarray(getattr(params, name))) for name in _POSITIVE_FIELDS + _NONNEGATIVE_FIELDS}
-    rho_a = p["density_kg_m3"] * p["width_m"] * p["thickness_m"]
-    e_i = p["youngs_modulus_pa"] * p["width_m"] * p["thickness_m"] ** 3 / 12.0
+    # NumPy scalars: an extreme arm overflows its own scales in float64, which with Python
+    # floats raised a ZeroDivisionError (1e-200 m long) or an OverflowError (1e200 m)
+    p = {name: np.float64(np.asarray(getattr(params, name))) for name in _POSITIVE_FIELDS + _NONNEGATIVE_FIELDS}
     length = p["length_m"]
-    with np.errstate(all="ignore"):  # the arm's own scales, in float64: an extreme arm overflows them (1e-200 m: a ZeroDivisionError)
-        mu, j, r = (np.float64(p[name]) / (rho_a * length**power) for name, power in (("hub_inertia_kg_m2", 3), ("payload_inertia_kg_m2", 3), ("payload_mass_kg", 1)))
-        scale = np.float64(e_i) / rho_a
-    if not all(np.isfinite([mu, j, r, rho_a, e_i, scale])) or scale == 0:
-        raise ValueError(f"params: the arm's frequency equation must be finite in float64; got hub and payload ratios {mu:g}, {j:g}, {r:g} "
-                         f"and EI / (rho A) = {scale:g} for {params} (check the units)")
+    with np.errstate(all="ignore"):
+        rho_a = p["density_kg_m3"] * p["width_m"] * p["thickness_m"]
+        e_i = p["youngs_modulus_pa"] * p["width_m"] * p["thickness_m"] ** 3 / 12.0
+        rho_a_l3 = rho_a * length**3
+        mu, j, r = p["hub_inertia_kg_m2"] / rho_a_l3, p["payload_inertia_kg_m2"] / rho_a_l3, p["payload_mass_kg"] / (rho_a * length)
+        scale = e_i / rho_a
+    if not (np.all(np.isfinite([mu, j, r, rho_a_l3, scale])) and rho_a_l3 > 0 and scale > 0):
+        raise ValueError(f"params: the arm's frequency equation must be finite in float64, its scales > 0; got hub and payload ratios {mu:g}, {j:g}, {r:g}, "
+                         f"rho A L^3 = {rho_a_l3:g} kg m^2 and EI / (rho A) = {scale:g} m^4/s^2 for {params} (check the units)")
     mu, j, r = float(mu), float(j), float(r)
 
     def f(lam: float) -> float:
@@ -478,4 +487,8 @@ def exact_natural_frequencies_hz(params: BeamParams, n_freqs: int = 2) -> np.nda
         raise ValueError(f"params: the scan found {len(roots)} of the {n_freqs} frequencies asked for (n_freqs) in lambda = beta L up to {grid[-1]:.4g} "
                          f"for {params}: the hub and payload ratios {mu:g}, {j:g}, {r:g} are beyond what it resolves")
     lam = np.array(roots)
-    return lam**2 / length**2 * math.sqrt(scale) / (2 * math.pi)
+    with np.errstate(under="ignore"):
+        freqs = lam**2 / length**2 * math.sqrt(scale) / (2 * math.pi)
+    if not np.all(freqs > 0):  # underflowed: 1e100 m long and 1e-300 N/m^2
+        raise ValueError(f"params: the arm's frequencies must be > 0 in float64; got {freqs} Hz for {params} (check the units)")
+    return freqs

@@ -144,7 +144,8 @@ def check_plants(spec: "ScenarioSpec", params: beam.BeamParams, n_modes: int, me
 
 MAX_STEPS = 10**7
 """The most samples a horizon may hold: a scenario stores its force and noise for each (120 MB
-in float32 at 10^7, 2.8 hours at 1 ms; 10^12 ran out of memory with nothing named)."""
+in float32 at 10^7, 2.8 hours at 1 ms), and its recorded trajectory 13 more values at 2 modes
+(1.3 GB a scenario in float64 all told); 10^12 ran out of memory with nothing named."""
 
 
 def horizon_steps(horizon_s: float, dt: float) -> int:
@@ -209,16 +210,20 @@ def paper_scenario(plant: LinearPlant | DiscretePlant, horizon_s: float = 3.0, d
     return Scenario(jnp.asarray(x0, dtype), jnp.zeros((steps, 1), dtype), jnp.zeros((steps, 2), dtype))
 
 
-def _is_raw_key(key: jax.Array) -> bool:
-    """Whether ``key`` is one legacy ``jax.random.PRNGKey`` of the default implementation
-    (2 words for threefry, 4 for rbg)."""
-    if key.dtype != jnp.uint32 or key.ndim != 1:
-        return False
+def _key_shape(key: Any) -> tuple[int, ...] | None:
+    """The shape of ``key`` counted in PRNG keys (``()`` for one): a typed key array, or
+    legacy ``jax.random.PRNGKey`` data of the default implementation (2 words a key for
+    threefry, 4 for rbg); None when it is neither."""
+    if not isinstance(key, jax.Array):
+        return None
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        return key.shape
+    if key.dtype != jnp.uint32 or key.ndim < 1:
+        return None
     try:
-        jax.random.wrap_key_data(key)
+        return jax.random.wrap_key_data(key).shape
     except TypeError:
-        return False
-    return True
+        return None
 
 
 def _paper_x0(n_modes: int, reading: str = "printed") -> np.ndarray:
@@ -351,17 +356,18 @@ def sample_scenarios(spec: ScenarioSpec, key: jax.Array, n: int, n_modes: int = 
         set in ``dtype``).
 
     Raises:
-      ValueError: naming ``spec`` when it is not a ScenarioSpec, ``key`` when it is not a PRNG
-        key, ``n``, ``n_modes`` or ``dtype`` out of range.
+      ValueError: naming ``spec`` when it is not a ScenarioSpec, ``key`` when it is not one
+        PRNG key (a batch of them included), ``n``, ``n_modes`` or ``dtype`` out of range.
 
     Returns:
       Scenario with fields [n, ...]; ``plant`` is None unless the spec perturbs the plant.
     """
     checks.instance("spec", spec, ScenarioSpec, "build one with ScenarioSpec(...) or ScenarioSpec.from_mapping({...})")
-    if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or _is_raw_key(key))):
+    key_shape = _key_shape(key)
+    if key_shape is None:
         raise ValueError(f"key must be a JAX PRNG key (jax.random.key(seed)); got {type(key).__name__} {key!r}")
-    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape != ():
-        raise ValueError(f"key must be one PRNG key (shape ()); got a batch of shape {key.shape}: n draws the {n!r} scenarios from one key")
+    if key_shape != ():  # a legacy batch, [3, 2] words, was refused as no key at all
+        raise ValueError(f"key must be one PRNG key (shape ()); got a batch of shape {key_shape}: n draws the {n!r} scenarios from one key")
     n = checks.integer("n (number of scenarios)", n)
     n_modes = beam.check_n_modes(n_modes)
     dtype = checks.float_dtype("dtype", dtype)

@@ -383,3 +383,17 @@ def test_every_public_arm_function_refuses_a_bad_arm_by_name(params, match):
     widths = jnp.array([0.015, 0.019008])
     batch = jax.vmap(lambda w: beam.natural_frequencies_hz(BeamParams(width_m=w), 2))(widths)
     np.testing.assert_allclose(batch[1], beam.natural_frequencies_hz(BeamParams(), 2), rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"length_m": 1e-200}, r"params: the arm's frequency equation must be finite in float64, its scales > 0; got hub and payload ratios inf, nan, 0"),  # a ZeroDivisionError
+        ({"length_m": 1e200}, r"params: the arm's frequency equation .*rho A L\^3 = inf kg m\^2"),  # an OverflowError
+        ({"thickness_m": 1e-300}, r"params: the arm's frequency equation .*EI / \(rho A\) = 0 m\^4/s\^2"),
+        ({"length_m": 1e100, "youngs_modulus_pa": 1e-300}, r"params: the arm's frequencies must be > 0 in float64; got \[0\. 0\.\] Hz"),  # returned
+    ],
+)
+def test_exact_frequencies_refuse_an_arm_beyond_float64(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        beam.exact_natural_frequencies_hz(BeamParams(**kwargs))

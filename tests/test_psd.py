@@ -107,6 +107,30 @@ def test_welch_whole_record_and_settings():
             get_window("hann", 8, dtype)
 
 
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"window": "kaiser"}, r"window must be one of \('hann', 'hamming', 'blackman', 'boxcar'\); got 'kaiser'"),
+        ({"nperseg": 0}, r"nperseg must be an integer >= 1; got 0"),
+        ({"nperseg": "256"}, r"nperseg must be an integer >= 1; got '256'"),
+        ({"nperseg": 8, "noverlap": 8}, r"noverlap \(None, or below nperseg = 8\) must be an integer in \[0, 7\]; got 8"),
+        ({"noverlap": -1}, r"noverlap \(None, or below nperseg = 256\) must be an integer in \[0, 255\]; got -1"),
+        ({"detrend": "quadratic"}, r"detrend must be one of 'constant', 'linear', None or False; got 'quadratic'"),
+        ({"detrend": 0}, r"detrend must be one of 'constant', 'linear', None or False; got 0"),
+    ],
+)
+def test_psd_settings_refuse_bad_fields_when_built(kwargs, match):
+    """PSDSettings kept any value, to fail in welch or be reported as is by to_dict."""
+    with pytest.raises(ValueError, match=match):
+        PSDSettings(**kwargs)
+
+
+def test_psd_settings_store_numpy_integers_as_ints():
+    s = PSDSettings(nperseg=np.int64(64), noverlap=np.int32(16))
+    assert type(s.nperseg) is int and type(s.noverlap) is int and s == PSDSettings(nperseg=64, noverlap=16)
+    assert hash(s) == hash(PSDSettings(nperseg=64, noverlap=16))
+
+
 def test_sinusoid_plus_noise_matches_scipy_and_peaks_at_tone():
     f_tone = 37.5  # Hz; bin 48 of nperseg = 256 at FS = 200
     t = np.arange(4000) / FS

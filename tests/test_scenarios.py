@@ -211,6 +211,10 @@ def test_sample_scenarios_and_initial_condition_name_bad_inputs():
     for key in (0, np.uint32(3), jnp.zeros(3, jnp.uint32)):
         with pytest.raises(ValueError, match=r"key must be a JAX PRNG key \(jax.random.key\(seed\)\)"):
             sample_scenarios(spec, key, 2)
+    # a batch of keys of either kind: the legacy one was refused as no key at all
+    for keys in (jax.random.split(jax.random.key(0), 3), jax.random.split(jax.random.PRNGKey(0), 3)):
+        with pytest.raises(ValueError, match=r"key must be one PRNG key \(shape \(\)\); got a batch of shape \(3,\): n draws the 2 scenarios from one key"):
+            sample_scenarios(spec, keys, 2)
     with pytest.raises(ValueError, match=r"dtype must be a floating dtype \(jnp.float32, jnp.float64\); got int32"):
         sample_scenarios(spec, jax.random.key(0), 2, dtype=jnp.int32)
     # both kinds of key draw the same scenarios

@@ -14,8 +14,9 @@ static Python values; ``x`` and ``fs`` may be traced.
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
-from typing import Any, NamedTuple, Union
+from typing import Any, Union
 
 import jax
 import jax.numpy as jnp
@@ -43,7 +44,8 @@ _COSINE_COEFFS = {
 Detrend = Union[str, None, bool]
 
 
-class PSDSettings(NamedTuple):
+@dataclasses.dataclass(frozen=True)
+class PSDSettings:
     """Static settings of the Welch estimator (a hashable record, not an array pytree).
 
     Its fields are Python strings and ints, so pass it by closure or as a static
@@ -51,17 +53,28 @@ class PSDSettings(NamedTuple):
 
     Attributes:
       window: one of ``WINDOWS``: "hann", "hamming", "blackman", "boxcar".
-      nperseg: samples per segment, ``1 <= nperseg <= T``.
+      nperseg: samples per segment, ``1 <= nperseg <= T`` (``T`` is checked by ``welch``).
       noverlap: samples shared by consecutive segments, ``0 <= noverlap < nperseg``;
         ``None`` means ``nperseg // 2``.
       detrend: "constant" (remove each segment's mean), "linear" (remove each
         segment's least-squares line), or ``None``/``False`` (none).
+
+    Raises:
+      ValueError: naming the field and its accepted range, when built (``nperseg = 0`` was
+        kept, to fail only in ``welch``).
     """
 
     window: str = "hann"
     nperseg: int = 256
     noverlap: int | None = None
     detrend: Detrend = "constant"
+
+    def __post_init__(self) -> None:
+        _check_window_and_detrend(self.window, self.detrend)
+        nperseg = checks.integer("nperseg", self.nperseg)
+        object.__setattr__(self, "nperseg", nperseg)
+        if self.noverlap is not None:
+            object.__setattr__(self, "noverlap", checks.integer(f"noverlap (None, or below nperseg = {nperseg})", self.noverlap, low=0, high=nperseg - 1))
 
     def resolved_noverlap(self) -> int:
         """The overlap actually used: ``noverlap``, or ``nperseg // 2`` when ``None``."""
@@ -130,13 +143,19 @@ def _get_window(window: str, nperseg: int, dtype: Any) -> jax.Array:
     return w
 
 
+def _check_window_and_detrend(window: Any, detrend: Any) -> None:
+    if not (isinstance(window, str) and window in WINDOWS):
+        raise ValueError(f"window must be one of {WINDOWS}; got {window!r}")
+    if not (any(detrend is d for d in (None, False)) or (isinstance(detrend, str) and detrend in ("constant", "linear"))):
+        raise ValueError(f"detrend must be one of 'constant', 'linear', None or False; got {detrend!r}")
+
+
 def _validate(x_shape: tuple[int, ...], fs: Any, window: Any, nperseg: Any, noverlap: Any, detrend: Any) -> int:
     """Static checks (and fs when concrete); returns the resolved noverlap."""
     if len(x_shape) not in (1, 2):
         raise ValueError(f"x must have shape [T] or [T, n] (time first); got shape {x_shape}")
     n_t = x_shape[0]
-    if window not in WINDOWS:
-        raise ValueError(f"window must be one of {WINDOWS}; got {window!r}")
+    _check_window_and_detrend(window, detrend)
     if isinstance(nperseg, bool) or not isinstance(nperseg, (int, np.integer)):
         raise ValueError(f"nperseg must be a Python int with 1 <= nperseg <= T = {n_t}; got {nperseg!r}")
     if not 1 <= nperseg <= n_t:
@@ -147,8 +166,6 @@ def _validate(x_shape: tuple[int, ...], fs: Any, window: Any, nperseg: Any, nove
         raise ValueError(f"noverlap must be a Python int with 0 <= noverlap < nperseg = {nperseg}; got {noverlap!r}")
     if not 0 <= noverlap < nperseg:
         raise ValueError(f"noverlap must satisfy 0 <= noverlap < nperseg = {nperseg}; got {noverlap}")
-    if not any(detrend is d for d in (None, False)) and detrend not in ("constant", "linear"):
-        raise ValueError(f"detrend must be one of 'constant', 'linear', None or False; got {detrend!r}")
     if is_concrete(fs):
         check_finite_scalar("fs", fs, positive=True, unit="Hz")
     elif jnp.ndim(fs) != 0:
@@ -220,7 +237,7 @@ def welch(
         checks.instance("settings", settings, PSDSettings, "build one with PSDSettings(window, nperseg, noverlap, detrend)")
         if (window, nperseg, noverlap, detrend) != ("hann", 256, None, "constant"):
             raise ValueError("pass either settings= or window/nperseg/noverlap/detrend keywords, not both")
-        window, nperseg, noverlap, detrend = settings
+        window, nperseg, noverlap, detrend = settings.window, settings.nperseg, settings.noverlap, settings.detrend
     if is_concrete(x):
         checks.real_array("x", x)  # a string is refused by name, not by JAX's TypeError
     x = jnp.asarray(x)
