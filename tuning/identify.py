@@ -24,9 +24,11 @@ room for the rigid mode's constant and ramp. Real poles and poles with less than
 the window (the rigid mode, drift, offsets) are set aside, and so are modes no stronger than
 ``NOISE_FACTOR`` times the noise (what the model leaves of the record) in every channel, or no
 longer so a period after their peak (poles fitted to round-off, gone within a sample or two);
-of the rest, the ``n`` lowest are the modes. Without noise, and with no more modes in the record
-than fitted, the poles are exact; with noise, their error shrinks as the record lengthens,
-while its lags (at most ``MAX_ROWS``) span a period or more of each mode (see ``lag_span_s``).
+of the rest, the ``n`` lowest are the modes. A record that rises in the window (``RISE_FACTOR``)
+is refused: a free decay does not grow, and a window that starts before the response (at rest,
+or in the excitation) is fitted with spurious modes and little residual. Without noise, and
+with no more modes in the record than fitted, the poles are exact; with noise, their error
+shrinks as the record lengthens, while its lags (at most ``MAX_ROWS``) span a period or more of each mode (see ``lag_span_s``).
 
 Modes above the Nyquist frequency ``1 / (2 dt)`` fold back onto lower frequencies: sample at
 several times the highest mode that the record holds.
@@ -60,6 +62,20 @@ of that channel (the noise), or of ``MIN_RMS`` (round-off) on a noise-free recor
 its envelope there one period after its peak."""
 MIN_RMS = 1e-6
 """The noise floor of a noise-free record, as a fraction of each channel's RMS."""
+RISE_FACTOR = 5.0
+"""A window whose RMS over a later quarter period of mode 1, in some channel (about its
+straight-line trend), is above this many times that over its first quarter period does not hold
+a free decay: it starts before the response (at rest, or in the excitation), which the poles fit
+as spurious, heavily damped modes with a small residual (modes at 4.1 and 19 Hz tapped at
+0.2 s, from 0.1 s: a mode at 11.7 Hz with a damping ratio of 0.41, 0.5 % left unexplained, and
+the 19 Hz mode lost). A free decay's envelope does not grow, but a quarter period's RMS varies
+with the phase, by up to 2.1x for one mode (sqrt(0.82 / 0.18)), and two close modes beat: from
+where they cancel, by up to (a_1 + a_2) / |a_1 - a_2|, under 5 for amplitudes within 2/3 of each
+other. That record (``tests/test_identify.py``) rises 32x from its start, 27x from 0.1 s, 16x
+from 40 ms before the tap, 2.8x from 20 ms before it and 1.03x from its end. A free hub's
+angle, at rest and then drifting, is no straight line to measure this about (that record's, from
+0.1 s, is loudest in its first quarter period): the tip's deflection, or a strain gauge, shows
+the rise."""
 GRID_RTOL = 0.5
 """Sample times may stray from a uniform grid by this fraction of the sample time: each is still
 nearest its own sample, as times written with few decimals are (1024 Hz to 4 decimals: 0.26)."""
@@ -178,13 +194,15 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
       t: [N] sample times (s), uniform.
       y: [N] or [N, n_ch] the record, one column per channel (any units).
       n_modes: the number of flexible modes to find, >= 1.
-      start_s, end_s: the window of ``t`` to use (default: all of it). Start after the
-        excitation has ended: before that, the record is not a free decay.
+      start_s, end_s: the window of ``t`` to use (default: all of it; ``start_s`` within the
+        record, an ``end_s`` past it cut to it). Start after the excitation has ended: before
+        that, the record is not a free decay.
 
     Raises:
       ValueError: naming the argument for a record that is not finite, uniformly sampled, or
         long enough for ``n_modes``, or a window outside it; and when fewer than ``n_modes``
-        modes stand above the noise, or one of them does not decay (not a free decay).
+        modes stand above the noise, or one of them does not decay, or the record rises in the
+        window (``RISE_FACTOR``): not a free decay.
     """
     n_modes = checks.integer("n_modes", n_modes, high=100)
     t = checks.real_array("t", t).astype(np.float64)
@@ -200,9 +218,11 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
         raise ValueError("t must be strictly ascending (s)")
     lo = t[0] if start_s is None else _time("start_s", start_s)
     hi = t[-1] if end_s is None else _time("end_s", end_s)
-    # a window reaching past the record is cut to it; one wholly outside it is refused
-    if start_s is not None and lo >= t[-1]:
-        raise ValueError(f"start_s must be before the record's last sample, at {t[-1]:.10g} s (t's clock); got {lo:.10g} s")
+    # an end past the record is cut to it; a start outside it is refused (a start in seconds
+    # from the tap on a record of Unix times took the whole record, rest and tap included)
+    if start_s is not None and not t[0] <= lo < t[-1]:
+        raise ValueError(f"start_s must be within the record, from its first sample at {t[0]:.15g} s to before its last at {t[-1]:.15g} s "
+                         f"(t's clock); got {lo:.15g} s")
     if end_s is not None and hi <= t[0]:
         raise ValueError(f"end_s must be after the record's first sample, at {t[0]:.10g} s (t's clock); got {hi:.10g} s")
     if hi <= lo:
@@ -222,7 +242,8 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
     # each channel scaled to unit RMS about its straight-line trend: an offset or a drift says
     # nothing of how strong the modes are
     trend = np.polynomial.polynomial.polyfit(steps, y, 1)
-    scale = np.sqrt(np.mean((y - trend[0] - np.outer(steps, trend[1])) ** 2, axis=0))
+    centred = y - trend[0] - np.outer(steps, trend[1])
+    scale = np.sqrt(np.mean(centred**2, axis=0))
     flat = np.flatnonzero(scale <= 1e-12 * np.max(np.abs(y), axis=0))  # round-off about the line
     if flat.size:
         raise ValueError(f"channel(s) {(flat + 1).tolist()} of y are constant or a straight line throughout the window")
@@ -257,7 +278,30 @@ def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = 
     if np.any(damping <= 0):
         growing = ", ".join(f"{w / (2 * np.pi):.4g} Hz" for w, z in zip(omega, damping) if z <= 0)
         raise ValueError(f"the mode(s) at {growing} do not decay in the window: it must be a free decay, after the excitation has ended (start_s)")
+    _check_no_rise(t, centred, omega[0] / (2 * np.pi), dt)
     return Modes(omega / (2 * np.pi), damping, rms[kept] * scale, float(dt), float(t[0]), float(t[-1]), residual, model * scale, order, (lags - 1) * float(dt))
+
+
+def _check_no_rise(t: np.ndarray, centred: np.ndarray, mode_1_hz: float, dt: float) -> None:
+    """Refuse a window whose response rises well after its start (``RISE_FACTOR``): one that
+    starts before the response, at rest or in the excitation. ``centred`` [N, n_ch]: each
+    channel about its straight-line trend (the rigid mode's drift taken out)."""
+    block = max(1, round(0.25 / (mode_1_hz * dt)))  # a quarter period of mode 1
+    n_blocks = centred.shape[0] // block
+    rms = np.sqrt(np.mean(centred[: n_blocks * block].reshape(n_blocks, block, -1) ** 2, axis=1))  # [n_blocks, n_ch]
+    rising = np.flatnonzero(rms.max(axis=0) > RISE_FACTOR * rms[0])
+    if rising.size:
+        with np.errstate(divide="ignore"):  # a first quarter period at exact rest
+            rise = rms.max(axis=0)[rising] / rms[0, rising]
+        worst = rising[np.argmax(rise)]
+        onset = float(t[block * np.argmax(rms[:, worst] > RISE_FACTOR * rms[0, worst])])
+        peak = float(t[np.argmax(np.abs(centred[:, worst]))])
+        raise ValueError(
+            f"the record rises in the window, which a free decay does not: in channel(s) {(rising + 1).tolist()} of y, its RMS over a quarter period of "
+            f"mode 1 ({mode_1_hz:.4g} Hz) grows {rise.max():.3g}x from the first (over {RISE_FACTOR:g}x), from about {onset:.15g} s to a peak at {peak:.15g} s "
+            f"(t's clock). The window starts before the response (at rest, or in the excitation): give a start_s just after the excitation has ended "
+            f"(two close modes that beat also rise from where they cancel: then start at their peak)"
+        )
 
 
 def _time(name: str, value: Any) -> float:
@@ -277,7 +321,7 @@ def _poles(y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
     lags = min(n // 3, MAX_ROWS) + 1
     # The Hankel matrix H = R^T Q^T has the left singular vectors of R^T: R from a QR of H^T
     # (a window of each channel per row) taken block by block, so memory stays O(lags^2)
-    # however long the record (100,000 samples of 2 channels: 8 s).
+    # however long the record (100,000 samples of 2 channels: 5 s on 2 idle cores).
     r = np.zeros((0, lags))
     for c in range(y.shape[1]):
         windows = np.lib.stride_tricks.sliding_window_view(y[:, c], lags)
