@@ -212,8 +212,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 _RESUME_HINT = {
-    "tune": "; --resume continues from the last checkpoint",
-    "montecarlo": "; --resume continues from the chunks written",
+    "tune": "; the same command with --resume continues from the last checkpoint",
+    "montecarlo": "; the same command with --resume continues from the chunks written",
 }
 
 
@@ -450,7 +450,9 @@ def _first_modes(count: int) -> str:
 def _model_line(arm, n_modes: int, dt: float) -> str:
     """The model a command is about to run, so that a unit slip in ``[beam]`` shows before
     the run: its flexible frequencies, their damping (a damping_ratio of 1 meant as 1 % is
-    100 %), the sample time, and the modes above Nyquist."""
+    100 %), the sample time, and the modes above Nyquist. A first mode at or above Nyquist is
+    refused: the controller could not see the vibration it is to damp (dt = 1 meant as 1 ms
+    ran a Monte Carlo whose every run diverged)."""
     import numpy as np
 
     from jaxflex.beam import natural_frequencies_hz, rayleigh_coefficients
@@ -459,6 +461,9 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     check_dt(dt)
     freqs = np.asarray(natural_frequencies_hz(arm, n_modes), float)
     nyquist = 0.5 / dt
+    if freqs[0] >= nyquist:
+        raise ValueError(f"dt must be below {0.5 / freqs[0]:.3g} s, for the arm's first flexible mode, {freqs[0]:.4g} Hz, to lie below the Nyquist frequency "
+                         f"0.5 / dt, or the controller cannot see the vibration it is to damp; got {dt:g} s (Nyquist {nyquist:.4g} Hz; dt is in seconds: 1 ms is 0.001)")
     # each flexible mode's own ratio (exact for Rayleigh damping): damping_ratio is that of the
     # 2-mode model, so with other n_modes the modes run with other ratios
     alpha, beta = (float(c) for c in rayleigh_coefficients(arm))
@@ -490,7 +495,8 @@ def _tune(args: argparse.Namespace) -> int:
             seed=args.seed,
             learning_rate=args.lr,
         )
-    print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
+    with _as_typed(_sources({}, values, args.config)):  # a dt of 1 meant as 1 ms: "[scenarios] dt of FILE must be below ..."
+        print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
     summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress, on_step=_raise_pending)
     obj = summary["objective"]
     def gains(named: dict) -> str:  # 6 digits, as a line to read: tuned.json has the float32 run's 55.000008
@@ -587,14 +593,15 @@ def _montecarlo(args: argparse.Namespace) -> int:
         config = MCConfig(**values)
     if unused := sorted(set(values.get("params", {})) - set(PARAMETERS[config.controller])):
         print(f"note: {config.controller} does not use [params] {', '.join(unused)} of {args.config} (it reads {', '.join(PARAMETERS[config.controller]) or 'none'})", file=sys.stderr)
-    if config.n_scenarios < recorded.get("n_scenarios", 0):
-        given = "--scenarios" if args.scenarios is not None else f"n_scenarios of {args.config}"
-        print(f"note: --resume: {given} asks for {config.n_scenarios} scenarios, where the run in {args.out} recorded {recorded['n_scenarios']}: "
-              f"the summary covers the first {config.n_scenarios}, and the folder now records {config.n_scenarios}", file=sys.stderr)
     if tuned is not None and (differences := tuned.differences(config.beam, config.n_modes, config.scenarios.dt, config.method)):
         print(f"note: {args.params} was tuned for {', '.join(differences)}; --config sets what runs here", file=sys.stderr)
-    print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
+    with _as_typed(sources):
+        print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
     summary = run_montecarlo(config, args.out, resume=args.resume, progress=not args.no_progress, on_chunk=_raise_pending)
+    if config.n_scenarios < recorded.get("n_scenarios", 0):  # said once the run took the count: a count below the folder's chunk is refused
+        given = "--scenarios" if args.scenarios is not None else f"n_scenarios of {args.config}"
+        print(f"note: --resume: {given} asked for {config.n_scenarios} scenarios, where the run in {args.out} had recorded {recorded['n_scenarios']}: "
+              f"the summary covers the first {config.n_scenarios}, and the folder now records {config.n_scenarios}", file=sys.stderr)
     tip = summary["metrics"]["peak_tip_deflection_m"]
     spread = ", ".join(f"p{p:g} {format_value(tip[f'p{p:g}'], '.4g')}" for p in summary["percentiles"])
     print(f"{summary['n_scenarios']} scenarios on {summary['devices']} device(s): diverged fraction {summary['diverged_fraction']:.4g} (blew up, or the tip beyond the arm's {config.beam.length_m:g} m length)")

@@ -336,7 +336,8 @@ def read_toml(path: str | os.PathLike, option: str = "--config") -> dict[str, An
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:  # TOML is UTF-8
         if _is_json(path):
             raise ValueError(f"{option}: {path} is JSON, not TOML (a tuned.json from `jaxflex tune` goes to --params of "
-                             "reproduce or montecarlo; the arm it was tuned for comes with it)") from None
+                             "reproduce or montecarlo, the arm it was tuned for with it; `jaxflex calibrate` writes the arm for --config "
+                             "as calibrated.toml, beside its calibration.json)") from None
         raise ValueError(f"{option}: {path} is not valid TOML: {err}") from None
 
 

@@ -329,7 +329,7 @@ def _run_locked(config: MCConfig, out_dir: str, resume: bool, progress: bool, fi
     # The folder is checked before any sampling or compiling.
     if os.path.exists(meta_path):
         if not resume:
-            raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume (resume=True) to continue it, or choose another --out (out_dir)")
+            raise ValueError(f"{out_dir} already holds a Monte Carlo run: pass --resume (resume=True) to continue it, choose another --out (out_dir), or delete the folder to start over in it")
         _check_resume(meta_path, meta, config.n_scenarios)
         if _read_meta(meta_path).get("n_scenarios") != config.n_scenarios:  # the count a later bare --resume goes on to
             fileio.write_json(meta_path, meta)

@@ -244,7 +244,7 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     with pytest.raises(KeyboardInterrupt):
         run_montecarlo(config, tmp_path / "cut", progress=False, figures=False, on_chunk=interrupt)
     assert sorted(os.listdir(tmp_path / "cut" / "chunks")) == [f"chunk_{i:06d}.npz" for i in range(3)]
-    with pytest.raises(ValueError, match=r"pass --resume \(resume=True\) to continue it, or choose another --out \(out_dir\)"):
+    with pytest.raises(ValueError, match=r"pass --resume \(resume=True\) to continue it, choose another --out \(out_dir\), or delete the folder to start over in it"):
         run_montecarlo(config, tmp_path / "cut", progress=False)
     resumed = run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
     assert resumed["metrics"] == full["metrics"] and resumed["n_scenarios"] == 70
@@ -411,10 +411,15 @@ def test_cli_says_how_many_runs_did_not_settle(tmp_path, capsys):
     # fewer than recorded, from the config or --scenarios: said (it shrank the run silently)
     config.write_text("band_scenarios = 2\nn_scenarios = 4\n[params]\nk = 30.0\nk1 = 1.5\n[scenarios]\nhorizon_s = 0.05\n")
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
-    assert f"note: --resume: n_scenarios of {config} asks for 4 scenarios, where the run in {tmp_path / 'o'} recorded 5" in capsys.readouterr().err
+    assert f"note: --resume: n_scenarios of {config} asked for 4 scenarios, where the run in {tmp_path / 'o'} had recorded 5" in capsys.readouterr().err
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "3", "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
-    assert "note: --resume: --scenarios asks for 3 scenarios, where the run in" in capsys.readouterr().err
+    assert "note: --resume: --scenarios asked for 3 scenarios, where the run in" in capsys.readouterr().err
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["n_scenarios"] == 3
+    # below the folder's chunk of 3: refused, without the note that the folder took the count
+    assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "2", "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "has chunks of 3 scenarios, this one 2" in err and "note: --resume" not in err
+    assert json.loads((tmp_path / "o" / montecarlo.META).read_text())["n_scenarios"] == 3
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "5", "--out", str(tmp_path / "o"), "--no-progress", "--resume", "--unroll", "1"]) == 2
     assert "changed: unroll: 2 -> 1" in capsys.readouterr().err  # one given is compared, not replaced
 

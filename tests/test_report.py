@@ -658,7 +658,7 @@ def test_cli_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatc
     monkeypatch.setattr(tuning.run, "run_tune", interrupted)
     checkpointed = True
     assert cli.main(["tune", "--out", str(tmp_path / "t"), "--no-progress"]) == 130
-    assert "jaxflex tune: interrupted; --resume continues from the last checkpoint" in capsys.readouterr().err
+    assert "jaxflex tune: interrupted; the same command with --resume continues from the last checkpoint" in capsys.readouterr().err
     # interrupted before its first checkpoint (while compiling): nothing to resume
     checkpointed = False
     assert cli.main(["tune", "--out", str(tmp_path / "u"), "--no-progress"]) == 130
@@ -691,7 +691,7 @@ def test_cli_sigterm_ends_a_run_as_ctrl_c_does(tmp_path, capsys, monkeypatch):
     finally:
         signal.signal(signal.SIGTERM, before)
     assert not ignored
-    assert "jaxflex tune: terminated (SIGTERM); --resume continues from the last checkpoint" in capsys.readouterr().err
+    assert "jaxflex tune: terminated (SIGTERM); the same command with --resume continues from the last checkpoint" in capsys.readouterr().err
     assert sorted(os.listdir(tmp_path / "t")) == ["checkpoint.npz"]  # no staging folder left
 
 

@@ -676,6 +676,13 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     assert 13 < freqs[0] < 25 < freqs[1]
     assert cli.main(["stability", "--config", str(config), "--dt", "0", "--out", str(tmp_path / "o")]) == 2
     assert "dt must be a finite scalar > 0" in capsys.readouterr().err
+    # dt and tau in ms typed as seconds: the first mode above Nyquist is refused, by source (it ran
+    # for 20 s and charted delays to 40000 ms)
+    assert cli.main(["stability", "--config", str(config), "--modes", "2", "--dt", "1", "--tau", "5", "--out", str(tmp_path / "o")]) == 2
+    assert f"--dt must be below {0.5 / freqs[0]:.3g} s, for the arm's first flexible mode, {freqs[0]:.4g} Hz, to lie below the Nyquist frequency 0.5 / dt" in capsys.readouterr().err
+    config.write_text("[scenarios]\ndt = 0.04\n")  # the paper's arm: 13.32 Hz above Nyquist, 12.5 Hz
+    assert cli.main(["stability", "--config", str(config), "--tau", "0.08", "--out", str(tmp_path / "o")]) == 2
+    assert f"[scenarios] dt of {config} must be below 0.0375 s" in capsys.readouterr().err
     config.write_text("[beam]\nlength = 0.6\n")
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
     # a misspelt key or table is refused, not read as "use the paper's arm" (it was, silently)

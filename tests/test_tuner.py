@@ -323,7 +323,7 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
         tune(cfg, tmp_path / "cut", progress=False, on_step=interrupt)
     with np.load(tmp_path / "cut" / CHECKPOINT) as data:
         assert json.loads(bytes(data["meta"]).decode())["step"] == 4  # lost at most one interval
-    with pytest.raises(ValueError, match=r"pass --resume \(resume=True\) to continue it, or choose another --out \(out_dir\)"):
+    with pytest.raises(ValueError, match=r"pass --resume \(resume=True\) to continue it, choose another --out \(out_dir\), or delete the folder to start over in it"):
         tune(cfg, tmp_path / "cut", progress=False)  # never overwrite a run silently
     # saved more often after the interruption: when a run is saved is not what it computes
     resumed = tune(dataclasses.replace(cfg, checkpoint_every=3), tmp_path / "cut", resume=True, progress=False)

@@ -426,7 +426,7 @@ def _tune_locked(
     fingerprint = config.fingerprint()
     # The folder and the checkpoint's configuration are checked before any sampling or compiling.
     if not resume and os.path.exists(ckpt_path):
-        raise ValueError(f"{out_dir} already holds a tuning run ({CHECKPOINT}): pass --resume (resume=True) to continue it, or choose another --out (out_dir)")
+        raise ValueError(f"{out_dir} already holds a tuning run ({CHECKPOINT}): pass --resume (resume=True) to continue it, choose another --out (out_dir), or delete the folder to start over in it")
     if resume:
         if not os.path.exists(ckpt_path):
             raise ValueError(f"--resume: no checkpoint at {ckpt_path}")
