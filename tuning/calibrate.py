@@ -240,7 +240,8 @@ def calibrate(
 
     Raises:
       ValueError: naming a bad input; a fitted field that does not act on the frequencies
-        (the hub's inertia with the hub clamped); fields that the measured frequencies do not
+        (the hub's inertia with the hub clamped, or on an arm in the wrong units: the starting
+        arm's frequencies are named beside the measured ones); fields that the measured frequencies do not
         tell apart; a fit that ran to ``MAX_FACTOR`` times a starting value; or a fit that did
         not converge.
     """
@@ -255,7 +256,12 @@ def calibrate(
         scale = np.max(np.abs(jac0))
         inert = [name for name, column in zip(fit, jac0.T) if np.max(np.abs(column)) <= RANK_RTOL * scale]
         if inert:
-            raise ValueError(f"{', '.join(inert)} does not change the model's frequencies with the hub {hub}: leave it out of fit")
+            f0 = np.exp(np.asarray(log_freqs(z0)))
+            far = np.any(np.abs(np.log(f0 / measured)) > np.log(10))
+            units = "; a factor of 10 or more apart: check the starting arm's units (a length or a thickness in mm)" if far else ""
+            hz = ", ".join
+            raise ValueError(f"{', '.join(inert)} does not change the model's frequencies with the hub {hub}: leave it out of fit (the starting arm's model "
+                             f"gives {hz(f'{f:.4g}' for f in f0)} Hz, against the {hz(f'{f:.4g}' for f in measured)} Hz measured{units})")
         sv = np.linalg.svd(jac0, compute_uv=False)
         if sv[-1] <= RANK_RTOL * sv[0]:
             raise ValueError(
