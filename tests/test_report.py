@@ -516,7 +516,7 @@ def test_a_refused_option_is_named_as_typed(tmp_path, capsys):
     cases = [
         (["tune", "--lr", "nan"], "jaxflex tune: error: --lr must be a finite number > 0; got nan"),
         (["stability", "--k", "nan"], "jaxflex stability: error: --k must be finite; got nan"),
-        (["stability", "--tau", "0.0055"], "jaxflex stability: error: --tau must be a whole number >= 1 of samples of dt = 0.001 s; got 0.0055 s (5.5 samples)"),
+        (["stability", "--tau", "0.0055"], "jaxflex stability: error: --tau must be a whole number >= 1 of samples of dt = 0.001 s; got 0.0055 s (5.5 samples): the nearest are 0.005 s and 0.006 s"),
         (["stability", "--tau-max", "0.002"], "jaxflex stability: error: --tau-max must be at least the delay analysed, tau_s = 0.005 s, so that the chart holds that point; got 0.002 s"),
         (["stability", "--dt", "0"], "jaxflex stability: error: --dt must be a finite scalar > 0 (seconds); got 0.0"),  # it said "dt"
         (["montecarlo", "--unroll", "65"], "jaxflex montecarlo: error: --unroll must be an integer in [1, 64]; got 65"),  # it said "unroll"

@@ -110,7 +110,9 @@ def delay_steps_of(tau_s: ArrayLike, dt: ArrayLike) -> int:
     step = check_finite_scalar("dt", dt, positive=True)
     steps = tau / step
     if not whole_samples(steps) or round(steps) < 1:
-        raise ValueError(f"tau_s must be a whole number >= 1 of samples of dt = {step:g} s; got {tau:g} s ({steps:g} samples)")
+        near = sorted({max(1, math.floor(steps)), max(1, math.ceil(steps))}) if math.isfinite(steps) else []
+        nearest = f": the nearest {'are' if len(near) == 2 else 'is'} {' and '.join(f'{n * step:g} s' for n in near)}" if near else ""
+        raise ValueError(f"tau_s must be a whole number >= 1 of samples of dt = {step:g} s; got {tau:g} s ({steps:g} samples){nearest}")
     return int(round(steps))
 
 
