@@ -509,7 +509,7 @@ def test_tuning_lowers_heldout_objective(tuned, controller):
 def test_bad_input_is_refused(tmp_path):
     # out-of-range starting values are refused by the config, before tune() makes its folder
     for initial, reason in (({"tau_s": 0.1}, r"tau_s must be in \[0.001, 0.032\]"), ({"tau_s": -0.1}, r"tau_s must be in \[0.001, 0.032\]"), ({"k": -5.0}, r"k must be")):
-        with pytest.raises(ValueError, match=r"initial \(missing names take the paper's values\): " + reason):
+        with pytest.raises(ValueError, match=r"^initial " + reason + r".* \(a name missing from initial takes the paper's value\)$"):
             TuneConfig(controller="dfs", initial=initial, **SHARED)
     # a sample time the paper's 5 ms delay does not fit: the message says why the paper's gains matter
     coarse = dict(SHARED, scenarios=ScenarioSpec(horizon_s=0.4, dt=0.01))
@@ -975,7 +975,7 @@ def test_initial_gains_may_set_the_scales_where_the_papers_cannot_run(tmp_path):
     from tuning.run import run_tune
 
     coarse = dict(SHARED, n_scenarios=8, n_heldout=4, scenarios=ScenarioSpec(horizon_s=0.4, dt=0.01))
-    with pytest.raises(ValueError, match=r'tau_s must be in \[0.01, 0.32\] s \(one sample to the delay buffer capacity of 32 samples\); got 0.005; set reference = "initial" to scale the objective by the \[initial\] gains instead$'):
+    with pytest.raises(ValueError, match=r"tau_s must be in \[0.01, 0.32\] s \(one sample to the delay buffer's capacity, 32 samples: capacity sets it\); got 0.005; set reference = .initial. to scale the objective by the \[initial\] gains instead$"):
         TuneConfig(controller="dfs", initial={"tau_s": 0.02}, **coarse)
     with pytest.raises(ValueError, match=r"reference must be one of \('paper', 'initial'\); got 'nominal'"):
         TuneConfig(reference="nominal")

@@ -67,7 +67,7 @@ def tau_bounds(dt: float, capacity: int) -> tuple[float, float]:
 def check_tau(tau_s: float, dt: float, capacity: int) -> None:
     lo, hi = tau_bounds(dt, capacity)
     if not (np.isfinite(tau_s) and lo <= tau_s <= hi):
-        raise ValueError(f"tau_s must be in [{lo:g}, {hi:g}] s (one sample to the delay buffer capacity of {capacity} samples); got {tau_s}")
+        raise ValueError(f"tau_s must be in [{lo:g}, {hi:g}] s (one sample to the delay buffer's capacity, {capacity} samples: capacity sets it); got {tau_s}")
 
 
 def _dfs_parts(dt: float, capacity: int, delay: str, pade_order: int):

@@ -143,7 +143,7 @@ class TuneConfig:
         try:
             tc.to_raw(tc.from_named(dict(self.initial)))
         except ValueError as err:
-            raise ValueError(f"initial (missing names take the paper's values): {err}") from None
+            raise ValueError(f"initial {err} (a name missing from initial takes the paper's value)") from None
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
