@@ -593,9 +593,11 @@ def calibration(
     left.set_ylabel("Natural frequency (Hz)")
     width = 0.38
     for offset, values, label, color in ((-width / 2, before_hz, "model before", "C1"), (width / 2, after_hz, "model calibrated", "C0")):
-        bars = right.bar(modes + offset, 100.0 * (np.asarray(values) / measured_hz - 1.0), width, label=label, color=color)
-        # a calibrated error of 0 draws no bar: its label shows it, as +0.00 (a -1e-14 % was "-0.00")
-        right.bar_label(bars, fmt=lambda v: f"{round(v, 2) + 0.0:+.2f}", fontsize=7)
+        error = 100.0 * (np.asarray(values) / measured_hz - 1.0)
+        # a calibrated error of 0 draws no bar: its label shows it, as +0.00, above the axis (a
+        # -1e-14 % was "-0.00", and a label below the axis when the round-off was negative)
+        bars = right.bar(modes + offset, np.where(np.abs(error) < 0.005, 0.0, error), width, label=label, color=color)
+        right.bar_label(bars, fmt=lambda v: f"{v:+.2f}", fontsize=7)
     right.axhline(0.0, color="k", lw=0.8)
     right.margins(y=0.12)  # room for the bar labels inside the frame
     right.set_ylabel("Error (% of measured)")

@@ -420,3 +420,17 @@ def test_cli_notes_damping_ratios_the_model_cannot_give(tmp_path, capsys):
     assert f"note: the model misses the damping ratio of mode 1 by {100 * (best[0] / 0.01 - 1):.3g} % (over 5 %): Rayleigh damping" in printed.err
     assert cli.main(["calibrate", "--freqs", "13.3", "35.1", "--damping", "0.01", "0.02", "--out", str(tmp_path / "b")]) == 0
     assert "damping ratio of mode" not in capsys.readouterr().err  # two ratios a Rayleigh pair gives
+
+
+def test_calibration_figure_labels_a_zero_error_above_the_axis():
+    """A calibrated error of round-off size draws no bar, and its label, +0.00, sat below the
+    axis when the round-off was negative."""
+    from jaxflex import plotting
+
+    measured = np.array([4.1, 19.0])
+    fig = plotting.calibration(measured, np.array([13.3, 36.5]), measured * (1 - 1e-15), "t")
+    right = fig.axes[1]
+    labels = [(t.get_text(), t.get_verticalalignment()) for t in right.texts]
+    assert labels == [("+224.39", "bottom"), ("+92.11", "bottom"), ("+0.00", "bottom"), ("+0.00", "bottom")]  # each above its bar's end
+    assert all(bar.get_height() == 0.0 for bar in right.containers[1])
+    plotting.plt.close(fig)
