@@ -463,7 +463,8 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     nyquist = 0.5 / dt
     if freqs[0] >= nyquist:
         raise ValueError(f"dt must be below {0.5 / freqs[0]:.3g} s, for the arm's first flexible mode, {freqs[0]:.4g} Hz, to lie below the Nyquist frequency "
-                         f"0.5 / dt, or the controller cannot see the vibration it is to damp; got {dt:g} s (Nyquist {nyquist:.4g} Hz; dt is in seconds: 1 ms is 0.001)")
+                         f"0.5 / dt, or the controller cannot see the vibration it is to damp; got {dt:g} s (Nyquist {nyquist:.4g} Hz; dt is in seconds: 1 ms is 0.001. "
+                         "Or the arm's values are off: a thickness in mm raises its frequencies)")
     # each flexible mode's own ratio (exact for Rayleigh damping): damping_ratio is that of the
     # 2-mode model, so with other n_modes the modes run with other ratios
     alpha, beta = (float(c) for c in rayleigh_coefficients(arm))
