@@ -456,7 +456,8 @@ def _check_resume(meta_path: str, meta: dict[str, Any], n_scenarios: int) -> Non
     # a folder written while _SUMMARY_ONLY still counted has them in its config and its hash
     same = isinstance(previous, dict) and meta["fingerprint"] in (previous.get("fingerprint"), fileio.digest({k: v for k, v in before.items() if k not in _SUMMARY_ONLY}))
     if not same:
-        raise ValueError(f"--resume: {meta_path} was written by a run with another configuration ({fileio.changed_fields(before, meta['config'])})")
+        raise ValueError(f"--resume: {meta_path} was written by a run with another configuration ({fileio.changed_fields(before, meta['config'])}): "
+                         "resume with the command that started it, its --config and options, and --resume")
     if previous.get("chunk") != meta["chunk"]:
         chunk = previous.get("chunk")
         fix = f"--chunk {chunk}" if not isinstance(chunk, int) or n_scenarios >= chunk else f"--scenarios {chunk} or more and --chunk {chunk}"

@@ -248,7 +248,7 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
         run_montecarlo(config, tmp_path / "cut", progress=False)
     resumed = run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
     assert resumed["metrics"] == full["metrics"] and resumed["n_scenarios"] == 70
-    with pytest.raises(ValueError, match=r"another configuration \(changed: seed: 0 -> 3\)"):
+    with pytest.raises(ValueError, match=r"another configuration \(changed: seed: 0 -> 3\): resume with the command that started it, its --config and options, and --resume$"):
         run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=15, seed=3, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
     with pytest.raises(ValueError, match="has chunks of 15 scenarios, this one 16 .*; pass --chunk 15"):
         run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=70, chunk=16, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)

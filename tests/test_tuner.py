@@ -339,7 +339,7 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
     assert again["step"] == 30 and len(again["history"]) == 31
     with pytest.raises(ValueError, match="--resume: no checkpoint at"):
         tune(cfg, tmp_path / "empty", resume=True, progress=False)
-    with pytest.raises(ValueError, match=r"another configuration \(changed: seed: 0 -> 1;"):
+    with pytest.raises(ValueError, match=r"another configuration \(changed: seed: 0 -> 1;.*\): resume with the command that started it, its --config and options, and --resume$"):
         tune(dataclasses.replace(cfg, seed=1), tmp_path / "cut", resume=True, progress=False)
     # another controller has other arrays: the configuration is compared before they are read,
     # and before any scenario is sampled or compiled

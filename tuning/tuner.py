@@ -433,7 +433,8 @@ def _tune_locked(
         meta = _load_checkpoint(ckpt_path)
         if meta["fingerprint"] != fingerprint:
             what = fileio.changed_fields(meta.get("config"), config.fingerprint_fields())
-            raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration ({what}; fingerprint {meta['fingerprint']} != {fingerprint})")
+            raise ValueError(f"--resume: {ckpt_path} was written by a run with another configuration ({what}; fingerprint {meta['fingerprint']} != {fingerprint}): "
+                             "resume with the command that started it, its --config and options, and --resume")
         if config.steps < meta["step"]:
             raise ValueError(f"--resume: the run in {out_dir} has taken {meta['step']} steps already; steps = {config.steps} cannot undo them (pass --steps {meta['step']} or more)")
     if on_start is not None:
