@@ -657,6 +657,11 @@ def _calibrate(args: argparse.Namespace) -> int:
         raise ValueError("--start, --end and --record-modes apply to --record only")
     modes, record = _identify(args) if args.record is not None else (None, None)
     freqs, damping = (args.freqs, args.damping) if modes is None else (modes.frequencies_hz, modes.damping)
+    # the arm the fit starts from and keeps the other fields of, so that a unit slip in [beam],
+    # or the paper's arm taken for want of a --config, shows (it was named nowhere)
+    fields = ", ".join(f"{name} {float(value):g}" for name, value in arm._asdict().items() if value is not None)
+    whose = f"the arm of {args.config}" if values.get("beam") else "the paper's arm (give yours in the [beam] table of a --config)"
+    print(f"starting from {whose}: {fields}", file=sys.stderr)
     try:
         result = calibrate(freqs, arm, args.fit, args.modes if args.modes is not None else config_modes, args.hub, damping)
     except ValueError as err:

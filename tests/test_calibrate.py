@@ -183,8 +183,10 @@ def test_cli_writes_a_config_the_other_commands_read(tmp_path, capsys):
     measured = [float(f) for f in natural_frequencies_hz(PAPER._replace(youngs_modulus_pa=60e9, hub_inertia_kg_m2=7e-4), 2)]
     out = tmp_path / "cal"
     code = cli.main(["calibrate", "--freqs", *map(str, measured), "--damping", "0.015", "0.025", "--out", str(out)])
-    printed = capsys.readouterr().out
+    printed, err = capsys.readouterr()
     assert code == 0 and "youngs_modulus_pa: 7.1e+10 -> 6e+10" in printed
+    # the arm it started from is named, and whose (it was named nowhere)
+    assert err.startswith("starting from the paper's arm (give yours in the [beam] table of a --config): length_m 0.9, width_m 0.019008, thickness_m 0.0032004, youngs_modulus_pa 7.1e+10,")
     assert "damping ratios: measured 0.015, 0.025; model 0.015, 0.025 in modes 1-2\n" in printed
     assert sorted(os.listdir(out)) == ["calibrated.toml", "calibration.json", "calibration.png"]
     summary = json.loads((out / "calibration.json").read_text())
@@ -206,6 +208,7 @@ def test_calibrated_config_keeps_the_configs_sample_time_and_method(tmp_path, ca
     config = tmp_path / "arm.toml"
     config.write_text('n_modes = 2\nmethod = "rk4"\n[scenarios]\ndt = 0.002\nhorizon_s = 0.5\n')
     assert cli.main(["calibrate", "--freqs", *map(str, measured), "--config", str(config), "--out", str(tmp_path / "c")]) == 0
+    assert "starting from the paper's arm (give yours in the [beam] table of a --config): length_m 0.9," in capsys.readouterr().err  # a config without [beam]
     written = tomllib.loads((tmp_path / "c" / "calibrated.toml").read_text())
     assert written["scenarios"] == {"dt": 0.002} and written["method"] == "rk4"
     tune = TuneConfig.from_mapping(written)
@@ -223,6 +226,10 @@ def test_calibrated_config_keeps_the_configs_sample_time_and_method(tmp_path, ca
     config.write_text('method = "euler"\n')
     assert cli.main(["calibrate", "--freqs", *map(str, measured), "--config", str(config), "--out", str(tmp_path / "e")]) == 2
     assert f"method of {config} must be one of ('rk4', 'zoh'); got 'euler'" in capsys.readouterr().err
+    config.write_text("[beam]\nlength_m = 800\n")  # mm: named before the fit's refusal
+    assert cli.main(["calibrate", "--freqs", *map(str, measured), "--config", str(config), "--out", str(tmp_path / "e")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"starting from the arm of {config}: length_m 800, width_m 0.019008,") and "check the starting arm's units" in err
 
 
 def test_cli_notes_a_calibrated_arm_that_still_misses_the_measurements(tmp_path, capsys):
@@ -393,8 +400,9 @@ def test_readme_tap_record_example_runs_as_written(tmp_path, monkeypatch, capsys
     monkeypatch.chdir(tmp_path)
     exec(compile(script, "README.md", "exec"), {})
     assert cli.main(["calibrate", "--record", "tap.csv", "--start", "0.02", "--out", "cal"]) == 0
-    printed = capsys.readouterr().out.splitlines()
-    assert printed[:4] == shown[:4] and shown[4] == "..."
+    out, err = capsys.readouterr()
+    printed = out.splitlines()
+    assert printed[:3] == shown[:3] and shown[3] in err.splitlines() and printed[3] == shown[4] and shown[5] == "..."  # shown[3]: stderr's starting arm
     # what the README says the record holds: the 8-mode arm's modes 1 and 2, here from its
     # state matrix's eigenvalues, to the 1e-5 and 1 % the README claims for such a record
     s = np.linalg.eigvals(np.asarray(make_plant(BeamParams(), 8).A, np.float64))
