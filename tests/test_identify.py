@@ -213,7 +213,10 @@ def test_read_record(tmp_path):
     path.write_text("0.0,1\n0.001,3\n")
     assert read_record(path)[2] == ["channel 1"]
     for text, match in [
-        ("t,a\n0,1\n1,2,3\n", "line 3 of .*: 3 columns, not 2"),
+        ("t,a\n0,1\n1,2,3\n", r"line 3 of .*: 3 columns, not 2 as the header line 1 has \(its names may hold no comma: quotes are not read\)$"),
+        ('"time, s","tip, mm"\n0,1\n', r"line 2 of .*: 2 columns, not 4 as the header line 1 has"),  # it blamed the data line alone
+        ("0,1\n1,2,3\n", r"line 2 of .*: 3 columns, not 2$"),
+        ("0,001;1,2\n0,002;1,3\n", r"line 2 of .*: '002;1' is not a finite number \(the file must be comma-separated with '.' for decimals: a ';'-separated export"),
         ("t,a\n0,x\n", "line 2 of .*: 'x' is not a finite number"),
         ("t,a\n0,nan\n", "line 2 of .*: 'nan' is not a finite number"),
         ("t,a\n", "holds no rows of numbers"),

@@ -152,20 +152,22 @@ def read_record(path: str | os.PathLike, option: str = "path") -> tuple[np.ndarr
     rows = [(i + 1, _cells(line)) for i, line in enumerate(lines) if line]
     if not rows:
         raise ValueError(f"{option}: {os.fspath(path)!r} holds no rows")
-    names = None
+    names, header = None, ""
     if any(_number(cell) is None for cell in rows[0][1]):
-        (_, names), rows = rows[0], rows[1:]
+        (first, names), rows = rows[0], rows[1:]
+        header = f" as the header line {first} has (its names may hold no comma: quotes are not read)"
     width = len(names) if names is not None else len(rows[0][1])
     if width < 2:
         raise ValueError(f"{option}: {os.fspath(path)!r} must have a time column (s) and at least one channel, comma-separated")
     values = []
     for number, cells in rows:
         if len(cells) != width:
-            raise ValueError(f"{option}: line {number} of {os.fspath(path)!r}: {len(cells)} columns, not {width}")
+            raise ValueError(f"{option}: line {number} of {os.fspath(path)!r}: {len(cells)} columns, not {width}{header}")
         row = [_number(cell) for cell in cells]
         bad = [cell for cell, value in zip(cells, row) if value is None or not math.isfinite(value)]
         if bad:
-            raise ValueError(f"{option}: line {number} of {os.fspath(path)!r}: {bad[0]!r} is not a finite number")
+            mark = " (the file must be comma-separated with '.' for decimals: a ';'-separated export with decimal commas is not read)" if ";" in bad[0] else ""
+            raise ValueError(f"{option}: line {number} of {os.fspath(path)!r}: {bad[0]!r} is not a finite number{mark}")
         values.append(row)
     if not values:
         raise ValueError(f"{option}: {os.fspath(path)!r} holds no rows of numbers")
