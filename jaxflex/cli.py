@@ -476,6 +476,8 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     above = freqs[freqs > nyquist]
     if above.size:
         line += f"; {above.size} mode(s) above Nyquist alias in what the controller measures"
+    if arm.rayleigh_alpha is None and float(arm.damping_ratio) >= 0.5:
+        line += f"; a damping_ratio of {float(arm.damping_ratio):g} damps the modes {'critically' if float(arm.damping_ratio) == 1 else 'heavily'} (1 % is 0.01)"
     return line
 
 

@@ -683,6 +683,9 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     config.write_text("[scenarios]\ndt = 0.04\n")  # the paper's arm: 13.32 Hz above Nyquist, 12.5 Hz
     assert cli.main(["stability", "--config", str(config), "--tau", "0.08", "--out", str(tmp_path / "o")]) == 2
     assert f"[scenarios] dt of {config} must be below 0.0375 s" in capsys.readouterr().err
+    config.write_text("[beam]\ndamping_ratio = 1\n")  # 1 % typed as 1: said beside the ratios
+    assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
+    assert "(damping_ratio = 1 of the 2-mode model), sampled every 0.001 s (Nyquist 500 Hz); a damping_ratio of 1 damps the modes critically (1 % is 0.01)\n" in capsys.readouterr().err
     config.write_text("[beam]\nlength = 0.6\n")
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
     # a misspelt key or table is refused, not read as "use the paper's arm" (it was, silently)
