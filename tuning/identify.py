@@ -62,8 +62,14 @@ of that channel (the noise), or of ``MIN_RMS`` (round-off) on a noise-free recor
 its envelope there one period after its peak."""
 MIN_RMS = 1e-6
 """The noise floor of a noise-free record, as a fraction of each channel's RMS."""
+RISE_BLOCK = 16
+"""The fewest samples ``RISE_FACTOR`` compares the RMS over: over a quarter period of a fast
+mode 1 (2 samples at 100 Hz and 1 kHz), a channel of noise alone rose over 5x from a quiet first
+block in 1 record of 20; over 16 samples its mean square varies as chi^2 with 16 degrees of
+freedom, and a 5x rise over 375 to 6250 blocks has a chance of 1e-6 to 5e-6."""
+
 RISE_FACTOR = 5.0
-"""A window whose RMS over a later quarter period of mode 1, in some channel (about its
+"""A window whose RMS over a later quarter period of mode 1 (``RISE_BLOCK`` samples at least), in some channel (about its
 straight-line trend), is above this many times that over its first quarter period does not hold
 a free decay: it starts before the response (at rest, or in the excitation), which the poles fit
 as spurious, heavily damped modes with a small residual (modes at 4.1 and 19 Hz tapped at
@@ -288,7 +294,9 @@ def _check_no_rise(t: np.ndarray, centred: np.ndarray, mode_1_hz: float, dt: flo
     """Refuse a window whose response rises well after its start (``RISE_FACTOR``): one that
     starts before the response, at rest or in the excitation. ``centred`` [N, n_ch]: each
     channel about its straight-line trend (the rigid mode's drift taken out)."""
-    block = max(1, round(0.25 / (mode_1_hz * dt)))  # a quarter period of mode 1
+    # a quarter period of mode 1, and at least RISE_BLOCK samples: a channel of noise alone had
+    # a first block of 2 samples 7x quieter than its loudest (mode 1 at 100 Hz, 1 kHz)
+    block = max(RISE_BLOCK, round(0.25 / (mode_1_hz * dt)))
     n_blocks = centred.shape[0] // block
     rms = np.sqrt(np.mean(centred[: n_blocks * block].reshape(n_blocks, block, -1) ** 2, axis=1))  # [n_blocks, n_ch]
     rising = np.flatnonzero(rms.max(axis=0) > RISE_FACTOR * rms[0])
@@ -299,8 +307,8 @@ def _check_no_rise(t: np.ndarray, centred: np.ndarray, mode_1_hz: float, dt: flo
         onset = float(t[block * np.argmax(rms[:, worst] > RISE_FACTOR * rms[0, worst])])
         peak = float(t[np.argmax(np.abs(centred[:, worst]))])
         raise ValueError(
-            f"the record rises in the window, which a free decay does not: in channel(s) {(rising + 1).tolist()} of y, its RMS over a quarter period of "
-            f"mode 1 ({mode_1_hz:.4g} Hz) grows {rise.max():.3g}x from the first (over {RISE_FACTOR:g}x), from about {onset:.15g} s to a peak at {peak:.15g} s "
+            f"the record rises in the window, which a free decay does not: in channel(s) {(rising + 1).tolist()} of y, its RMS over blocks of {block} samples "
+            f"(a quarter period of mode 1, {mode_1_hz:.4g} Hz, or {RISE_BLOCK} at least) grows {rise.max():.3g}x from the first (over {RISE_FACTOR:g}x), from about {onset:.15g} s to a peak at {peak:.15g} s "
             f"(t's clock). The window starts before the response (at rest, or in the excitation): give a start_s just after the excitation has ended "
             f"(two close modes that beat also rise from where they cancel: then start at their peak)"
         )
