@@ -728,6 +728,12 @@ def _identify(args: argparse.Namespace) -> tuple[Any, tuple[Any, Any, list[str]]
     if modes.residual > 0.1:
         print(f"note: the model leaves {100 * modes.residual:.3g} % of the record unexplained: check that the window starts after the "
               "excitation has ended (--start); see identification.png", file=sys.stderr)
+    if modes.rise is not None:
+        factor, channel, onset, peak = modes.rise
+        print(f"note: channel {names[channel]!r} rises {factor:.3g}x in the window (its RMS over a quarter period of mode 1, from the window's first, "
+              f"{modes.start_s:.10g} s, to about {onset:.10g} s; its peak at {peak:.10g} s): a free decay does not grow, so the window may start "
+              "before the response (at rest, or in the excitation), which the model fits with a spurious, heavily damped mode; if so, give a --start "
+              "just after the excitation has ended. Modes that nearly cancel at the start rise too: the other channels and identification.png tell", file=sys.stderr)
     if modes.lag_span_s * modes.frequencies_hz[0] < 1:
         if round(modes.lag_span_s / modes.dt) < MAX_ROWS:  # the lags are a third of a short window, not capped
             print(f"note: the window ({modes.end_s - modes.start_s:.3g} s) is so short that the model's lags (a third of it) span {modes.lag_span_s:.3g} s, "

@@ -9,13 +9,14 @@ import json
 import os
 import re
 
+import jax
 import numpy as np
 import pytest
 import scipy.linalg
 
 from jaxflex import cli
 from jaxflex.beam import BeamParams
-from jaxflex.plant import make_plant
+from jaxflex.plant import discretize, make_plant
 from tuning.identify import identify_modes, read_record
 
 PAPER = BeamParams()
@@ -422,31 +423,53 @@ def _tap_test(start_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     return t[keep], (np.stack(xs) @ outputs.T)[keep]
 
 
-def test_a_window_from_before_the_tap_is_refused_and_one_from_after_it_holds_both_modes():
+def test_a_window_from_before_the_tap_is_reported_and_one_from_after_it_holds_both_modes():
     """From 0.1 s (0.1 s of rest, then the tap) the poles fitted a mode at 11.7 Hz with a damping
     ratio of 0.41, leaving 0.5 % unexplained, and lost the 19 Hz mode; from the record's start,
-    6.3 Hz and 0.30: the record rises in the window (27-32x), which a free decay does not."""
+    6.3 Hz and 0.30: the record rises in the window (27-32x), which a free decay does not, and
+    was identified with no word of it."""
     t, y = _tap_test()
     wn = 2 * np.pi * np.array([4.1, 19.0])
-    for start_s in (None, 0.1, 0.16):  # 0.16: 40 ms of rest
-        with pytest.raises(ValueError, match=r"the record rises in the window, which a free decay does not: in channel\(s\) \[2\] of y.* a peak at "
-                                             r"0.38 s \(t's clock\)\. The window starts before the response .* give a start_s just after the excitation has ended"):
-            identify_modes(t, y, 2, start_s=start_s)
+    for start_s, low in ((None, 27), (0.1, 27), (0.16, 10)):  # 0.16: 40 ms of rest
+        factor, channel, onset, peak = identify_modes(t, y, 2, start_s=start_s).rise
+        assert factor > low and channel == 1 and 0.16 <= onset <= 0.24 and peak == pytest.approx(0.38)  # the tip, from the tap (block by block)
     modes = identify_modes(t, y, 2, start_s=0.21)  # the tap's end
+    assert modes.rise is None and modes.as_dict()["rise"] is None
     np.testing.assert_allclose(modes.frequencies_hz, wn / (2 * np.pi), rtol=1e-9)
     np.testing.assert_allclose(modes.damping, [0.01, 0.01], rtol=1e-7)
     # and a record that starts there (the rest cut off) is a free decay from its first sample
     np.testing.assert_allclose(identify_modes(*_tap_test(0.21), 2).frequencies_hz, wn / (2 * np.pi), rtol=1e-9)
 
 
-def test_cli_refuses_a_window_from_before_the_tap_naming_start(tmp_path, capsys):
+def test_cli_notes_a_window_from_before_the_tap_naming_start(tmp_path, capsys):
     t, y = _tap_test()
     _write_record(tmp_path / "tap2.csv", t, y, "time_s,hub_deg,tip_mm")
-    assert cli.main(["calibrate", "--record", str(tmp_path / "tap2.csv"), "--start", "0.1", "--out", str(tmp_path / "a")]) == 2
+    assert cli.main(["calibrate", "--record", str(tmp_path / "tap2.csv"), "--start", "0.1", "--out", str(tmp_path / "a")]) == 0
     err = capsys.readouterr().err
-    assert "the record rises in the window" in err and "in channel(s) 'tip_mm'" in err and "peak at 0.38 s" in err
+    assert re.search(r"note: channel 'tip_mm' rises \d+\.?\d*x in the window \(its RMS over a quarter period of mode 1, from the window's first, 0.1 s, to about 0.22 s; "
+                     r"its peak at 0.38 s\): a free decay does not grow, so the window may start before the response", err)
     assert "give a --start just after the excitation has ended" in err
-    assert not os.path.exists(tmp_path / "a")
+    assert json.loads((tmp_path / "a" / "calibration.json").read_text())["identified"]["rise"]["channel"] == 1
+    assert cli.main(["calibrate", "--record", str(tmp_path / "tap2.csv"), "--start", "0.21", "--out", str(tmp_path / "b")]) == 0
+    assert "rises" not in capsys.readouterr().err
+
+
+def test_the_readme_tap_records_hub_angle_rises_where_its_modes_cancel():
+    """Why a rise is a note and not a refusal: the README's tap record (the paper's arm, 8 modes,
+    after its 20 ms pulse) is a free decay from any start after 0.02 s, yet from 0.03 s, with
+    modes 1 and 2 (13.3 and 35.1 Hz) nearly cancelling in the hub angle over the first quarter
+    period, that channel rises over 5x (a refusal here stopped a good record)."""
+    with jax.enable_x64(True):
+        arm = discretize(make_plant(BeamParams(), 8), 0.001, "zoh")
+    ad, bd, cz = (np.asarray(m, np.float64) for m in (arm.Ad, arm.Bd, arm.Cz))
+    x, rows = np.zeros(len(ad)), []
+    for k in range(1000):
+        rows.append([cz[0] @ x, cz[1] @ x])
+        x = ad @ x + bd[:, 0] * (0.5 if k < 20 else 0.0)
+    t = 0.001 * np.arange(1000)
+    modes = identify_modes(t, np.array(rows), 2, start_s=0.03)
+    assert modes.rise is not None and modes.rise[0] > 5 and modes.rise[1] == 0  # the hub angle
+    np.testing.assert_allclose(modes.frequencies_hz, [13.3103, 35.1065], rtol=1e-4)  # the modes are right
 
 
 @pytest.mark.parametrize("noise, n_modes", [(0.01, 2), (0.1, 2), (0.3, 1)])
@@ -457,31 +480,38 @@ def test_a_noisy_free_decay_is_no_rise(noise, n_modes):
     clean = np.exp(-0.5 * tt) * np.sin(2 * np.pi * 6 * tt) + 0.5 * np.exp(-1.0 * tt) * np.sin(2 * np.pi * 27 * tt)
     y = clean + noise * np.std(clean) * np.random.default_rng(1).standard_normal(3000)
     modes = identify_modes(tt, y, n_modes)
+    assert modes.rise is None
     np.testing.assert_allclose(modes.frequencies_hz, np.hypot([6.0, 27.0], np.array([0.5, 1.0]) / (2 * np.pi))[:n_modes], rtol=1e-3)
 
 
 def test_a_channel_of_noise_alone_beside_a_fast_mode_is_no_rise():
     """Mode 1 at 100 Hz sampled at 1 kHz has a quarter period of 2 samples, over which a channel
-    that sees only noise rose over 5x from a quiet first block (seed 12 of 20: 7.15x)."""
+    that sees only noise rose over 5x from a quiet first block (seed 12 of 20: 7.15x): no rise
+    over blocks of RISE_BLOCK samples."""
     tt = np.arange(6000) * DT
     clean = np.exp(-3.0 * tt) * np.sin(2 * np.pi * 100 * tt) + 0.5 * np.exp(-5.0 * tt) * np.sin(2 * np.pi * 160 * tt)
     rng = np.random.default_rng(12)
     y = np.column_stack([clean + 0.01 * rng.standard_normal(tt.size), rng.standard_normal(tt.size)])
-    # identified, not refused (the noise channel, scaled to unit RMS like the other, costs mode 2 2e-4)
-    np.testing.assert_allclose(identify_modes(tt, y, 2).frequencies_hz, np.hypot([100.0, 160.0], np.array([3.0, 5.0]) / (2 * np.pi)), rtol=1e-3)
+    modes = identify_modes(tt, y, 2)
+    assert modes.rise is None
+    # the noise channel, scaled to unit RMS like the other, costs mode 2 2e-4
+    np.testing.assert_allclose(modes.frequencies_hz, np.hypot([100.0, 160.0], np.array([3.0, 5.0]) / (2 * np.pi)), rtol=1e-3)
 
 
 def test_two_close_modes_that_beat_are_no_rise_unless_they_cancel_at_the_start():
     """10 and 10.5 Hz beat every 2 s. Tapped where both move alike, the envelope falls from the
     start; with the second at half the first's amplitude and of opposite sign, it rises from
     where they cancel by (1 + 0.5) / (1 - 0.5) = 3, under RISE_FACTOR; at equal amplitudes from
-    where they cancel, it rises from nothing, which is refused, and accepted from its peak."""
+    where they cancel, it rises from nothing, which is reported, and not from its peak."""
     tt = np.arange(4000) * DT
     hz = np.hypot([10.0, 10.5], 0.3 / (2 * np.pi))
     for second in (1.0, -0.5):
         y = np.exp(-0.3 * tt) * (np.sin(2 * np.pi * 10 * tt) + second * np.sin(2 * np.pi * 10.5 * tt))
         np.testing.assert_allclose(identify_modes(tt, y, 2).frequencies_hz, hz, rtol=1e-9)
     y = np.exp(-0.3 * tt) * (np.sin(2 * np.pi * 10 * tt) - np.sin(2 * np.pi * 10.5 * tt))
-    with pytest.raises(ValueError, match=r"rises in the window.*\(two close modes that beat also rise from where they cancel: then start at their peak\)"):
-        identify_modes(tt, y, 2)
-    np.testing.assert_allclose(identify_modes(tt, y, 2, start_s=0.95).frequencies_hz, hz, rtol=1e-9)
+    modes = identify_modes(tt, y, 2)
+    assert modes.rise[0] > 5
+    np.testing.assert_allclose(modes.frequencies_hz, hz, rtol=1e-9)  # a free decay: identified all the same
+    modes = identify_modes(tt, y, 2, start_s=0.95)
+    assert modes.rise is None
+    np.testing.assert_allclose(modes.frequencies_hz, hz, rtol=1e-9)
