@@ -447,6 +447,11 @@ def _first_modes(count: int) -> str:
     return "mode 1" if count == 1 else f"modes 1-{count}"
 
 
+def _damped(ratio: float) -> str:
+    """How a damping ratio of 0.5 or more damps a mode."""
+    return "heavily" if ratio < 1 else "critically" if ratio == 1 else "past critically (overdamped)"
+
+
 def _model_line(arm, n_modes: int, dt: float) -> str:
     """The model a command is about to run, so that a unit slip in ``[beam]`` shows before
     the run: its flexible frequencies, their damping (a damping_ratio of 1 meant as 1 % is
@@ -463,8 +468,8 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     nyquist = 0.5 / dt
     if freqs[0] >= nyquist:
         raise ValueError(f"dt must be below {0.5 / freqs[0]:.3g} s, for the arm's first flexible mode, {freqs[0]:.4g} Hz, to lie below the Nyquist frequency "
-                         f"0.5 / dt, or the controller cannot see the vibration it is to damp; got {dt:g} s (Nyquist {nyquist:.4g} Hz; dt is in seconds: 1 ms is 0.001. "
-                         "Or the arm's values are off: a thickness in mm raises its frequencies)")
+                         f"0.5 / dt, or the controller cannot see the vibration it is to damp; got {dt:g} s (Nyquist {nyquist:.4g} Hz; dt is in seconds: 1 ms is 0.001, "
+                         "and is set by a --config's [scenarios] dt, or stability's --dt. Or the arm's values are off: a thickness in mm raises its frequencies)")
     # each flexible mode's own ratio (exact for Rayleigh damping): damping_ratio is that of the
     # 2-mode model, so with other n_modes the modes run with other ratios
     alpha, beta = (float(c) for c in rayleigh_coefficients(arm))
@@ -477,7 +482,7 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     if above.size:
         line += f"; {above.size} mode(s) above Nyquist alias in what the controller measures"
     if arm.rayleigh_alpha is None and float(arm.damping_ratio) >= 0.5:
-        line += f"; a damping_ratio of {float(arm.damping_ratio):g} damps the modes {'critically' if float(arm.damping_ratio) == 1 else 'heavily'} (1 % is 0.01)"
+        line += f"; a damping_ratio of {float(arm.damping_ratio):g} damps the modes {_damped(float(arm.damping_ratio))} (1 % is 0.01)"
     return line
 
 
@@ -686,6 +691,11 @@ def _calibrate(args: argparse.Namespace) -> int:
         print(f"damping ratio{'s' if n_f > 1 else ''}: measured {measured}{measured_in}; model {shown} in {_first_modes(n_f)}")
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
+    run_dt = config_dt if config_dt is not None else ScenarioSpec().dt
+    if result.after_hz[0] >= 0.5 / run_dt:  # tune, montecarlo and stability refuse it as it stands
+        print(f"note: the calibrated arm's mode 1, {result.after_hz[0]:.4g} Hz, is at or above the Nyquist frequency of dt = {run_dt:g} s"
+              f"{'' if config_dt is not None else ' (the default)'}: give calibrated.toml a [scenarios] dt below {0.5 / result.after_hz[0]:.3g} s "
+              "for tune, montecarlo and stability", file=sys.stderr)
     owned = ("calibrated.toml", "calibration.json", "calibration.png", "identification.png")
     with fileio.replace_outputs(args.out, owned, last="calibration.json") as stage:
         fileio.write_text(os.path.join(stage, "calibrated.toml"), to_toml(result, config_dt, config_method))

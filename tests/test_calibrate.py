@@ -442,3 +442,18 @@ def test_calibration_figure_labels_a_zero_error_above_the_axis():
     assert labels == [("+224.39", "bottom"), ("+92.11", "bottom"), ("+0.00", "bottom"), ("+0.00", "bottom")]  # each above its bar's end
     assert all(bar.get_height() == 0.0 for bar in right.containers[1])
     plotting.plt.close(fig)
+
+
+def test_cli_notes_a_calibrated_arm_too_fast_for_the_sample_time(tmp_path, capsys):
+    """A stiff arm's 650 Hz calibrated cleanly, and then tune, montecarlo and stability refused
+    its calibrated.toml at the default 1 ms, which calibrate had not said."""
+    config = tmp_path / "stiff.toml"
+    config.write_text("[beam]\nlength_m = 0.2\nthickness_m = 0.008\n")
+    assert cli.main(["calibrate", "--freqs", "650", "2000", "--config", str(config), "--out", str(tmp_path / "c")]) == 0
+    assert ("note: the calibrated arm's mode 1, 650 Hz, is at or above the Nyquist frequency of dt = 0.001 s (the default): "
+            "give calibrated.toml a [scenarios] dt below 0.000769 s for tune, montecarlo and stability") in capsys.readouterr().err
+    assert cli.main(["stability", "--config", str(tmp_path / "c" / "calibrated.toml"), "--out", str(tmp_path / "s")]) == 2
+    assert "and is set by a --config's [scenarios] dt, or stability's --dt" in capsys.readouterr().err
+    config.write_text("[beam]\nlength_m = 0.2\nthickness_m = 0.008\n[scenarios]\ndt = 2.5e-4\n")  # fast enough: no note
+    assert cli.main(["calibrate", "--freqs", "650", "2000", "--config", str(config), "--out", str(tmp_path / "d")]) == 0
+    assert "Nyquist" not in capsys.readouterr().err

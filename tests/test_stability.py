@@ -686,6 +686,10 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     config.write_text("[beam]\ndamping_ratio = 1\n")  # 1 % typed as 1: said beside the ratios
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
     assert "(damping_ratio = 1 of the 2-mode model), sampled every 0.001 s (Nyquist 500 Hz); a damping_ratio of 1 damps the modes critically (1 % is 0.01)\n" in capsys.readouterr().err
+    for ratio, how in (("0.6", "heavily"), ("2", "past critically (overdamped)")):
+        config.write_text(f"[beam]\ndamping_ratio = {ratio}\n")
+        assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
+        assert f"; a damping_ratio of {ratio} damps the modes {how} (1 % is 0.01)\n" in capsys.readouterr().err
     config.write_text("[beam]\nlength = 0.6\n")
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
     # a misspelt key or table is refused, not read as "use the paper's arm" (it was, silently)

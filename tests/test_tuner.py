@@ -621,6 +621,12 @@ def test_cli_tune_with_toml_config(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text("learning_rat = 0.1\n")
     assert cli.main(["tune", "--config", str(bad), "--out", str(tmp_path / "b"), "--no-progress"]) == 2
+    # a sample time the arm's mode 1 (13.32 Hz) aliases at is refused before the run, naming the key
+    bad.write_text('method = "zoh"\nreference = "initial"\n[initial]\ntau_s = 0.04\n[scenarios]\ndt = 0.04\n')
+    capsys.readouterr()
+    assert cli.main(["tune", "--config", str(bad), "--out", str(tmp_path / "b"), "--no-progress"]) == 2
+    assert f"jaxflex tune: error: [scenarios] dt of {bad} must be below 0.0375 s, for the arm's first flexible mode, 13.32 Hz" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()
 
 
 def test_checkpoint_round_trips_an_infinite_best_value(tmp_path):
