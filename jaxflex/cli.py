@@ -481,8 +481,9 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     above = freqs[freqs > nyquist]
     if above.size:
         line += f"; {above.size} mode(s) above Nyquist alias in what the controller measures"
-    if arm.rayleigh_alpha is None and float(arm.damping_ratio) >= 0.5:
-        line += f"; a damping_ratio of {float(arm.damping_ratio):g} damps the modes {_damped(float(arm.damping_ratio))} (1 % is 0.01)"
+    ratio = float(arm.damping_ratio)
+    if arm.rayleigh_alpha is None and ratio >= 0.5:
+        line += f"; a damping_ratio of {ratio:g} damps the modes {_damped(ratio)} (1 % is 0.01)"
     return line
 
 
