@@ -432,7 +432,8 @@ def test_a_window_from_before_the_tap_is_reported_and_one_from_after_it_holds_bo
     wn = 2 * np.pi * np.array([4.1, 19.0])
     for start_s, low in ((None, 27), (0.1, 27), (0.16, 10)):  # 0.16: 40 ms of rest
         factor, channel, onset, peak = identify_modes(t, y, 2, start_s=start_s).rise
-        assert factor > low and channel == 1 and 0.16 <= onset <= 0.24 and peak == pytest.approx(0.38)  # the tip, from the tap (block by block)
+        assert factor > low and channel == 1 and 0.16 <= onset <= 0.24 and 0.21 < peak < 0.21 + 1 / 4.1
+        # the tip; the rise at the tap, within a 60 ms block; the peak within a period of mode 1 after it
     modes = identify_modes(t, y, 2, start_s=0.21)  # the tap's end
     assert modes.rise is None and modes.as_dict()["rise"] is None
     np.testing.assert_allclose(modes.frequencies_hz, wn / (2 * np.pi), rtol=1e-9)
@@ -446,10 +447,11 @@ def test_cli_notes_a_window_from_before_the_tap_naming_start(tmp_path, capsys):
     _write_record(tmp_path / "tap2.csv", t, y, "time_s,hub_deg,tip_mm")
     assert cli.main(["calibrate", "--record", str(tmp_path / "tap2.csv"), "--start", "0.1", "--out", str(tmp_path / "a")]) == 0
     err = capsys.readouterr().err
-    assert re.search(r"note: channel 'tip_mm' rises \d+\.?\d*x in the window \(its RMS over a quarter period of mode 1, from the window's first, 0.1 s, to about 0.22 s; "
-                     r"its peak at 0.38 s\): a free decay does not grow, so the window may start before the response", err)
+    said = re.search(r"note: channel 'tip_mm' rises \d+\.?\d*x in the window \(its RMS over a quarter period of mode 1, from the window's first, 0.1 s, to about (0\.\d+) s; "
+                     r"its peak at (0\.\d+) s\): a free decay does not grow, so the window may start before the response", err)
+    rise = json.loads((tmp_path / "a" / "calibration.json").read_text())["identified"]["rise"]
+    assert said and rise["channel"] == 1 and [float(v) for v in said.groups()] == [rise["onset_s"], rise["peak_s"]]  # the note says what the file holds
     assert "give a --start just after the excitation has ended" in err
-    assert json.loads((tmp_path / "a" / "calibration.json").read_text())["identified"]["rise"]["channel"] == 1
     assert cli.main(["calibrate", "--record", str(tmp_path / "tap2.csv"), "--start", "0.21", "--out", str(tmp_path / "b")]) == 0
     assert "rises" not in capsys.readouterr().err
 
