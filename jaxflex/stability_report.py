@@ -62,7 +62,10 @@ def run(
         matrices grow with it); default ``min(max(8 tau, 40 ms, 20 dt), 160 dt)``.
       n_k: chart columns (>= 2).
       n_tau: chart rows (>= 2); default every sample up to tau_max_s, at most 80.
-      n_cheb: Chebyshev intervals of the continuous-loop generator (>= 2).
+      n_cheb: Chebyshev intervals of the continuous-loop generator (>= 2): the chart's, and
+        the first of the operating point's rightmost root, doubled until it converges
+        (:func:`~jaxflex.analysis.stability.rightmost_root_converged`; ``rightmost_root`` in
+        the JSON holds the intervals it took, and ``converged``).
       beam_params: the arm (plain numbers); ``None``: the paper's.
       progress: called with a short message before each stage, the last just before the
         files replace ``out_dir``'s: an exception it raises leaves ``out_dir`` as it was.
@@ -119,11 +122,11 @@ def run(
         first = st.first_destabilising_delay(k, plant=plant, tau_max_s=max(1.0, 2 * tau_max))
 
         say("rightmost root (Chebyshev collocation of the generator)")
-        root = complex(st.rightmost_root(plant, k, tau, n_cheb))
-        root_fine = complex(st.rightmost_root(plant, k, tau, 2 * n_cheb))
+        rightmost = st.rightmost_root_converged(plant, k, tau, n_cheb)
+        root = rightmost.root
         validation = None
         if math.isfinite(first):
-            below, above = (complex(st.rightmost_root(plant, k, first * f, 2 * n_cheb)) for f in (0.99, 1.01))
+            below, above = (complex(st.rightmost_root(plant, k, first * f, rightmost.n_cheb)) for f in (0.99, 1.01))
             validation = {"tau_below_s": 0.99 * first, "rightmost_real_below": below.real, "tau_above_s": 1.01 * first, "rightmost_real_above": above.real}
 
         say("sampled loop")
@@ -174,8 +177,9 @@ def run(
             "real": root.real,
             "imag": root.imag,
             "freq_hz": abs(root.imag) / (2 * math.pi),
-            "n_cheb": n_cheb,
-            "change_at_2x_n_cheb": abs(root_fine - root),
+            "n_cheb": rightmost.n_cheb,
+            "change_from_half_n_cheb": rightmost.change,
+            "converged": rightmost.converged,
         },
         "stable_continuous": root.real < 0,
         "exp_dt_rightmost_real": math.exp(dt * root.real),

@@ -161,6 +161,32 @@ def test_rightmost_root_converges_with_chebyshev_points(plant, k, tau):
     assert roots[-1].imag > 0 and roots[-1].real > 0  # of the unstable pair, the Im > 0 root
 
 
+def _characteristic_residual(plant, k, tau, s):
+    """|1 + k G(s) (1 - e^{-s tau})|, G = c (sI - A)^{-1} b, in NumPy: zero at a root of
+    det(sI - A + k b c (1 - e^{-s tau})) away from the poles of G."""
+    A, b, c = (np.asarray(m, complex) for m in (plant.A, plant.B[:, :1], plant.C[:1]))
+    g = (c @ np.linalg.solve(s * np.eye(A.shape[0]) - A, b))[0, 0]
+    return abs(1 + k * g * (1 - np.exp(-s * tau)))
+
+
+def test_rightmost_root_converged_doubles_until_settled():
+    """A 0.3 m arm (53 and 190 Hz) at tau = 0.16 s, 30 periods of mode 2: 32 intervals leave the
+    rightmost root off the characteristic equation (Re 8.8 /s against 11.25); the doubled one
+    solves it, and a cap below the needed intervals is reported unconverged."""
+    stiff = make_plant(beam.BeamParams(length_m=0.3), 2)
+    k, tau = 55.0, 0.16
+    coarse = complex(st.rightmost_root(stiff, k, tau, 32))
+    found = st.rightmost_root_converged(stiff, k, tau, 32)
+    assert found.converged and found.n_cheb >= 64 and found.change <= st.ROOT_RTOL * (1 + abs(found.root))
+    assert found.root == complex(st.rightmost_root(stiff, k, tau, found.n_cheb))
+    assert _characteristic_residual(stiff, k, tau, found.root) < 1e-8
+    assert _characteristic_residual(stiff, k, tau, coarse) > 1e-3 and abs(found.root.real - coarse.real) > 1.0
+    capped = st.rightmost_root_converged(stiff, k, tau, 8, max_n_cheb=16)
+    assert (capped.n_cheb, capped.converged) == (16, False) and capped.change > st.ROOT_RTOL * (1 + abs(capped.root))
+    with pytest.raises(ValueError, match=r"max_n_cheb must be an integer >= 64 \(Chebyshev intervals, twice n_cheb at least\); got 40"):
+        st.rightmost_root_converged(stiff, k, tau, 32, max_n_cheb=40)
+
+
 def test_sampled_rate_approaches_the_continuous_rightmost_root(plant):
     """log(radius)/dt -> Re(rightmost root) as dt -> 0 (ZOH and sampling add O(dt))."""
     for k, tau in ((PAPER_K, 0.005), (120.0, 0.004)):
@@ -528,7 +554,9 @@ def test_report_writes_chart_and_json(tmp_path):
     dplant = discretize(make_plant(n_modes=2), 1e-3, "zoh")
     np.testing.assert_allclose(result["spectral_radius"], float(st.spectral_radius(dplant, PAPER_K, 5)), rtol=1e-12)
     assert result["stable_sampled"] and result["stable_continuous"]
-    assert result["rightmost_root"]["real"] < 0 and result["rightmost_root"]["change_at_2x_n_cheb"] < 1e-8
+    root = result["rightmost_root"]
+    assert root["real"] < 0 and root["converged"] and root["n_cheb"] >= 48 and root["change_from_half_n_cheb"] < 1e-8
+    assert complex(root["real"], root["imag"]) == complex(st.rightmost_root(make_plant(n_modes=2), PAPER_K, PAPER_TAU, root["n_cheb"]))
     v = result["first_destabilising_validation"]
     assert v["rightmost_real_below"] < 0 < v["rightmost_real_above"]
     assert result["excluded_structural"]["multiplicity"] == 1
@@ -639,7 +667,10 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     def fake_run(out, **kwargs):
         seen.update(kwargs)
         return {"spectral_radius": 0.5, "spectral_radius_rk4": 3531649110.40803719, "stable_sampled": True, "first_destabilising_delay_s": 0.0123,
-                "first_destabilising_delay_sampled_s": None, "first_destabilising_delay_sampled_tau_max_s": 0.04}
+                "first_destabilising_delay_sampled_s": None, "first_destabilising_delay_sampled_tau_max_s": 0.04, "stable_continuous": stable,
+                "rightmost_root": {"real": -9.33536 if stable else 28.2199, "imag": imag, "n_cheb": 1024, "change_from_half_n_cheb": 0.0123, "converged": converged}}
+
+    stable, imag, converged = True, 0.0, True
 
     monkeypatch.setattr(stability_report, "run", fake_run)
     config = tmp_path / "tune.toml"
@@ -649,7 +680,16 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     assert (seen["k"], seen["tau_s"]) == (55.0, 0.005)  # the paper's point by default
     # the loop tune and montecarlo simulate by default (RK4) is printed beside the ZOH one, a
     # large radius in 4 digits (a 4 m thick arm's printed as 3531649110.40803719)
-    assert f"the arm of {config}, k = 55, tau = 0.005 s, 2 modes, dt = 0.001 s: sampled-loop spectral radius 0.50000000 (stable; sampled by RK4, the default of tune and montecarlo: 3.532e+09, UNSTABLE), first destabilising delay 0.0123 s (continuous loop; sampled loop: none up to 0.04 s)" in capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert f"the arm of {config}, k = 55, tau = 0.005 s, 2 modes, dt = 0.001 s: sampled-loop spectral radius 0.50000000 (stable; sampled by RK4, the default of tune and montecarlo: 3.532e+09, UNSTABLE), first destabilising delay 0.0123 s (continuous loop; sampled loop: none up to 0.04 s), continuous loop's rightmost root -9.335 /s (stable)" in out
+    assert "Chebyshev" not in err
+    # a root that did not settle is said to be unsettled, with its change
+    stable, imag, converged = False, -289.84, False
+    assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
+    out, err = capsys.readouterr()
+    assert "continuous loop's rightmost root 28.22 ± 289.8j /s (UNSTABLE)" in out
+    assert "note: the continuous loop's rightmost root moved by 0.0123 rad/s between 512 and 1024 Chebyshev intervals, the most tried: its real part, and stable_continuous in stability.json, are not settled" in err
+    stable, imag, converged = True, 0.0, True
     # a config that sets its method is named beside the RK4 radius, which read as the run's own
     for method, whose in (("zoh", f"which {config} does not use"), ("rk4", f"the method of {config}")):
         config.write_text(f'method = "{method}"\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
