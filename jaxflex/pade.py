@@ -284,7 +284,7 @@ def _sample(ss: PadeSS, dt: ArrayLike, hold: str) -> tuple[PadeDiscrete, jax.Arr
     return PadeDiscrete(phi, g1 - g2 + phi @ g2, ss.C, ss.D + ss.C @ g2), g2
 
 
-def discretize_pade(ss: PadeSS, dt: ArrayLike, hold: str = "zoh") -> PadeDiscrete:
+def discretize_pade(ss: PadeSS, dt: ArrayLike, hold: str = "foh") -> PadeDiscrete:
     """Sample the Pade delay exactly for an input held or interpolated between samples.
 
     ``"zoh"``: the input is held over each sample; ``(Ad, Bd)`` are blocks of
@@ -300,7 +300,8 @@ def discretize_pade(ss: PadeSS, dt: ArrayLike, hold: str = "zoh") -> PadeDiscret
     Args:
       ss: continuous Pade delay (``pade_state_space``); may be traced.
       dt: sample time (s), finite and > 0.
-      hold: ``"zoh"`` or ``"foh"``.
+      hold: ``"foh"`` (default, as :func:`sampled_delay` and ``dfs``: it converges to the
+        delay as the order grows) or ``"zoh"``.
     """
     checks.instance("ss", ss, PadeSS, "build one with pade_state_space(tau_s, order)")
     return _sample(ss, dt, hold)[0]

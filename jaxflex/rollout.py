@@ -256,7 +256,10 @@ def rollout(
       Trajectory with fields [T, ...], or RunMetrics; for a batch, each field with a leading
       B axis (as ``vmap`` over single scenarios gives them). A loop that diverges returns
       non-finite or huge values; ``RunMetrics.diverged`` and
-      :func:`jaxflex.analysis.metrics.diverged` report it.
+      :func:`jaxflex.analysis.metrics.diverged` report it. A loop that grows without blowing
+      up (a tip deflection beyond the arm's length, every state below 1e6) only
+      :func:`jaxflex.analysis.metrics.run_diverged` reports, from ``peak_tip_m`` and the
+      arm's length, as the commands do.
     """
     check_controller("controller", controller)
     unroll = checks.integer("unroll", unroll, high=MAX_UNROLL)

@@ -137,6 +137,9 @@ def test_discretize_matches_scipy_cont2discrete(hold):
     Ad, Bd, Cd, Dd, _ = scipy.signal.cont2discrete(tuple(np.asarray(m) for m in ss), DT, method=hold)
     for a, b in zip(got, (Ad, Bd, Cd, Dd)):
         np.testing.assert_allclose(np.asarray(a), b, rtol=RTOL_SAMPLED, atol=RTOL_SAMPLED)
+    if hold == "foh":  # the default, as sampled_delay's and dfs's (it was "zoh", which does not converge to the delay)
+        for a, b in zip(pade.discretize_pade(ss, DT), got):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     # and the sampled poles are exactly exp(-p_i dt / tau)
     np.testing.assert_allclose(
         np.sort(np.abs(np.linalg.eigvals(np.asarray(got.Ad)))), np.sort(np.exp(-pade._poles(n).real * DT / TAU)), rtol=RTOL_SAMPLED

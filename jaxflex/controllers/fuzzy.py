@@ -456,15 +456,16 @@ def _no_fire_mass(temperature: float) -> float:
 
 
 def memberships(x: jax.typing.ArrayLike, centres: jax.Array, *, temperature: float = 0.0) -> jax.Array:
-    """Memberships of a scalar in all the triangular sets of one variable.
+    """Memberships of a crisp input in all the triangular sets of one variable.
 
     Args:
-      x: shape=() crisp input (normalised); clipped to ``[centres[0], centres[-1]]``.
+      x: crisp input (normalised), a scalar or an array of them; clipped to
+        ``[centres[0], centres[-1]]``.
       centres: [n_sets] strictly increasing set centres.
       temperature: 0 for the exact triangles; ``T > 0`` for the smooth ones (see ``fuzzy``).
 
     Returns:
-      [n_sets] memberships in [0, 1] (in (0, 1) for ``T > 0``); for ``T = 0`` on the universe
+      [n_sets, *x.shape] memberships in [0, 1] (in (0, 1) for ``T > 0``); for ``T = 0`` on the universe
       they sum to 1 (for ``T > 0`` to within O(T)).
 
     Raises:
