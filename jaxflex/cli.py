@@ -760,6 +760,13 @@ def _progress_line(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+def _moved(first: float | None, first_more: float | None) -> bool:
+    """Whether the first destabilising delay differs by more than 1 % with more modes (None: none)."""
+    if first is None or first_more is None:
+        return first is not first_more
+    return abs(first_more - first) > 0.01 * first
+
+
 def _root(root: dict) -> str:
     """A characteristic root from stability.json, in rad/s: ``-9.335 /s`` or ``28.22 ± 289.8j /s``."""
     imag = abs(root["imag"])
@@ -768,6 +775,7 @@ def _root(root: dict) -> str:
 
 def _stability(args: argparse.Namespace) -> int:
     from jaxflex.analysis.stability import delay_steps_of
+    from jaxflex.beam import natural_frequencies_hz
     from jaxflex.scenarios import ScenarioSpec
     from jaxflex.stability_report import run
 
@@ -798,6 +806,14 @@ def _stability(args: argparse.Namespace) -> int:
           f"first destabilising delay {'none' if first is None else f'{first:g} s'} (continuous loop; sampled loop: "
           f"{'none up to ' + format(result['first_destabilising_delay_sampled_tau_max_s'], 'g') + ' s' if sampled is None else f'{sampled:g} s'}), "
           f"continuous loop's rightmost root {_root(root)} ({'stable' if result['stable_continuous'] else 'UNSTABLE'})")
+    more = result["first_destabilising_delay_more_modes"]
+    if more is not None and _moved(first, more["s"]):
+        freq = next((c["freq_hz"] for c in result["crossings"] if first is not None and first in c["tau_s"]), None)
+        top = float(natural_frequencies_hz(arm, n_modes)[-1])
+        where = "" if freq is None else f" (its crossing, at {freq:.4g} Hz, {'lies above' if freq > top else 'against'} the model's top mode, {top:.4g} Hz)"
+        print(f"note: with {more['n_modes']} modes the continuous loop's first destabilising delay is {'none' if more['s'] is None else format(more['s'], 'g') + ' s'} against "
+              f"{'none' if first is None else format(first, 'g') + ' s'} with {n_modes}{where}: it moves with the modes the model leaves out; "
+              f"--modes {more['n_modes']} analyses the larger model", file=sys.stderr)
     if not root["converged"]:
         print(f"note: the continuous loop's rightmost root moved by {root['change_from_half_n_cheb']:.3g} rad/s between {root['n_cheb'] // 2} and "
               f"{root['n_cheb']} Chebyshev intervals, the most tried: its real part, and stable_continuous in stability.json, are not settled "

@@ -559,6 +559,10 @@ def test_report_writes_chart_and_json(tmp_path):
     assert complex(root["real"], root["imag"]) == complex(st.rightmost_root(make_plant(n_modes=2), PAPER_K, PAPER_TAU, root["n_cheb"]))
     v = result["first_destabilising_validation"]
     assert v["rightmost_real_below"] < 0 < v["rightmost_real_above"]
+    # the 2-mode model's first destabilising delay (a crossing above its top mode) beside 6 modes'
+    more = result["first_destabilising_delay_more_modes"]
+    assert more == {"n_modes": 2 + stability_report.MORE_MODES, "s": st.first_destabilising_delay(PAPER_K, 2 + stability_report.MORE_MODES)}
+    assert more["s"] < 0.9 * first
     assert result["excluded_structural"]["multiplicity"] == 1
     # the sampled loop's own first destabilising delay, in whole samples: 6 ms is stable and
     # 7 ms is not, below the continuous loop's 7.315 ms
@@ -668,9 +672,10 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
         seen.update(kwargs)
         return {"spectral_radius": 0.5, "spectral_radius_rk4": 3531649110.40803719, "stable_sampled": True, "first_destabilising_delay_s": 0.0123,
                 "first_destabilising_delay_sampled_s": None, "first_destabilising_delay_sampled_tau_max_s": 0.04, "stable_continuous": stable,
+                "crossings": [{"freq_hz": 68.91, "tau_s": [0.0123, 0.1]}], "first_destabilising_delay_more_modes": {"n_modes": 6, "s": first_more},
                 "rightmost_root": {"real": -9.33536 if stable else 28.2199, "imag": imag, "n_cheb": 1024, "change_from_half_n_cheb": 0.0123, "converged": converged}}
 
-    stable, imag, converged = True, 0.0, True
+    stable, imag, converged, first_more = True, 0.0, True, 0.01225
 
     monkeypatch.setattr(stability_report, "run", fake_run)
     config = tmp_path / "tune.toml"
@@ -682,14 +687,17 @@ def test_report_analyses_the_given_arm(tmp_path, monkeypatch, capsys):
     # large radius in 4 digits (a 4 m thick arm's printed as 3531649110.40803719)
     out, err = capsys.readouterr()
     assert f"the arm of {config}, k = 55, tau = 0.005 s, 2 modes, dt = 0.001 s: sampled-loop spectral radius 0.50000000 (stable; sampled by RK4, the default of tune and montecarlo: 3.532e+09, UNSTABLE), first destabilising delay 0.0123 s (continuous loop; sampled loop: none up to 0.04 s), continuous loop's rightmost root -9.335 /s (stable)" in out
-    assert "Chebyshev" not in err
+    assert "Chebyshev" not in err and "6 modes" not in err  # 0.4 % from the 6-mode model's: no note
     # a root that did not settle is said to be unsettled, with its change
-    stable, imag, converged = False, -289.84, False
+    stable, imag, converged, first_more = False, -289.84, False, 0.0107
     assert cli.main(["stability", "--config", str(config), "--out", str(tmp_path / "o")]) == 0
     out, err = capsys.readouterr()
+    top = beam.natural_frequencies_hz(arm, 2)[-1]
+    assert f"note: with 6 modes the continuous loop's first destabilising delay is 0.0107 s against 0.0123 s with 2 (its crossing, at 68.91 Hz, lies above the model's top mode, {top:.4g} Hz): it moves with the modes the model leaves out; --modes 6 analyses the larger model" in err
+    assert top < 68.91
     assert "continuous loop's rightmost root 28.22 ± 289.8j /s (UNSTABLE)" in out
     assert "note: the continuous loop's rightmost root moved by 0.0123 rad/s between 512 and 1024 Chebyshev intervals, the most tried: its real part, and stable_continuous in stability.json, are not settled" in err
-    stable, imag, converged = True, 0.0, True
+    stable, imag, converged, first_more = True, 0.0, True, 0.01225
     # a config that sets its method is named beside the RK4 radius, which read as the run's own
     for method, whose in (("zoh", f"which {config} does not use"), ("rk4", f"the method of {config}")):
         config.write_text(f'method = "{method}"\n[beam]\nlength_m = 0.6\npayload_mass_kg = 0.05\n')
