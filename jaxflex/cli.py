@@ -185,7 +185,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--cpu-devices", type=_cpu_devices, default=None, help=_CPU_DEVICES_HELP)
 
     mc = sub.add_parser("montecarlo", help="batched Monte Carlo over sampled scenarios: statistics, histograms, percentile bands")
-    mc.add_argument("--controller", choices=NAMES, default=None, help="controller (default dfs+fuzzy)")
+    mc.add_argument("--controller", choices=NAMES, default=None, help="controller (default dfs+fuzzy, or --params' own)")
     mc.add_argument("--params", default=None, help="tuned.json from `jaxflex tune` (default: the paper's gains)")
     mc.add_argument("--scenarios", type=_positive_int, default=None, help="number of scenarios N (default 10000; with --resume, the folder's)")
     mc.add_argument("--chunk", type=_positive_int, default=None, help="scenarios per chunk; memory grows with it (default 4096; with --resume, the folder's)")
@@ -282,7 +282,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         _raise_pending()  # one dropped after the runs' last check: their files are complete, but the user asked to stop
         return status
     except (ValueError, OSError) as err:
-        print(f"jaxflex {args.command}: error: {err}", file=sys.stderr)
+        message, config = str(err), getattr(args, "config", None)
+        if config and message.startswith("unknown ") and " key(s) " in message:  # fileio.check_keys on the config's tables: name the file, as range refusals do
+            message = message.replace("; accepted", f" in {config}; accepted", 1)
+        print(f"jaxflex {args.command}: error: {message}", file=sys.stderr)
         return 2
     except RuntimeError as err:  # jax.errors.JaxRuntimeError, a RuntimeError
         if "RESOURCE_EXHAUSTED" not in str(err):
@@ -487,6 +490,32 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     return line
 
 
+def _scenario_notes(arm, n_modes: int, spec, given: dict, config: str | None) -> list[str]:
+    """What in a run's scenarios looks like a unit slip, said before the run: a horizon shorter
+    than a period of mode 1 (a modulus in GPa gave 0.00017 Hz, and tune ran on), and initial
+    deflections that are not small against the arm (q0_std_m = 1 meant as 1 mm: tune trained on
+    tips at 2 m of a 0.9 m arm, which montecarlo counts as diverged)."""
+    import numpy as np
+
+    from jaxflex.beam import natural_frequencies_hz
+
+    def named(key: str, unit: str) -> str:  # where the value came from: the config's [scenarios] or the default
+        return f"[scenarios] {key} = {getattr(spec, key):g} {unit} of {config}" if key in given else f"{key} = {getattr(spec, key):g} {unit} (the default)"
+
+    f1 = float(np.asarray(natural_frequencies_hz(arm, n_modes))[0])
+    length = float(arm.length_m)
+    notes = []
+    if 1 / f1 > spec.horizon_s:
+        notes.append(f"mode 1's period, {1 / f1:.3g} s, is longer than the horizon, {named('horizon_s', 's')}, so a run sees less than one cycle of it "
+                     "(or the arm's values are off: a modulus in GPa or a length in mm lowers its frequencies)")
+    for key, unit, scale in (("q0_std_m", "m", spec.q0_std_m), ("qdot0_std_m_s", "m/s", spec.qdot0_std_m_s / (2 * np.pi * f1))):
+        if scale > 0.1 * length:
+            how = "" if key == "q0_std_m" else f", over mode 1's {f1:.4g} Hz,"
+            notes.append(f"{named(key, unit)} gives initial modal deflections{how} of {scale / length:.0%} of the arm's length, {length:g} m: "
+                         "the model is linear, for deflections small against the length, and montecarlo counts a tip beyond the length as diverged (SI units: 1 mm is 0.001)")
+    return notes
+
+
 def _tune(args: argparse.Namespace) -> int:
     from tuning.run import run_tune
     from tuning.tuner import TuneConfig
@@ -506,6 +535,8 @@ def _tune(args: argparse.Namespace) -> int:
         )
     with _as_typed(_sources({}, values, args.config)):  # a dt of 1 meant as 1 ms: "[scenarios] dt of FILE must be below ..."
         print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
+    for note in _scenario_notes(config.beam, config.n_modes, config.scenarios, values.get("scenarios", {}), args.config):
+        print(f"note: {note}", file=sys.stderr)
     summary = run_tune(config, args.out, resume=args.resume, progress=not args.no_progress, on_step=_raise_pending)
     obj = summary["objective"]
     def gains(named: dict) -> str:  # 6 digits, as a line to read: tuned.json has the float32 run's 55.000008
@@ -561,6 +592,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
         raise ValueError(f"--config: {args.config} is a tune config: montecarlo does not read {sorted(unknown)}. Pass the tuned.json the run wrote as "
                          f"--params (it carries the arm, model and sample time), and a --config with montecarlo's keys only: {sorted(accepted)}")
     fileio.check_keys(values, accepted, "config")
+    typed_scenarios = dict(values["scenarios"]) if isinstance(values.get("scenarios"), Mapping) else {}  # the config's own, before the defaults join them
     options = {"controller": "--controller", "n_scenarios": "--scenarios", "chunk": "--chunk", "seed": "--seed", "unroll": "--unroll"}
     sources = _sources({name: option if getattr(args, option[2:]) is not None else None for name, option in options.items()}, values, args.config)
     tuned = load_tuned(args.params) if args.params else None
@@ -606,6 +638,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
         print(f"note: {args.params} was tuned for {', '.join(differences)}; --config sets what runs here", file=sys.stderr)
     with _as_typed(sources):
         print(_model_line(config.beam, config.n_modes, config.scenarios.dt), file=sys.stderr)
+    for note in _scenario_notes(config.beam, config.n_modes, config.scenarios, typed_scenarios, args.config):
+        print(f"note: {note}", file=sys.stderr)
     summary = run_montecarlo(config, args.out, resume=args.resume, progress=not args.no_progress, on_chunk=_raise_pending)
     if config.n_scenarios < recorded.get("n_scenarios", 0):  # said once the run took the count: a count below the folder's chunk is refused
         given = "--scenarios" if args.scenarios is not None else f"n_scenarios of {args.config}"

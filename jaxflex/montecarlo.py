@@ -21,6 +21,7 @@ import json
 import math
 import numbers
 import os
+import re
 import sys
 import zipfile
 from functools import partial
@@ -187,7 +188,7 @@ def metric_names(n_modes: int, reduction: str = REDUCTION_DOC) -> dict[str, str]
     """Per-scenario metrics and their definitions, including the dB reduction at each mode
     (``reduction``, its "mode i" named: ``REDUCTION_DOC``, or ``REDUCTION_LABEL`` for a figure)."""
     n_modes = beam.check_n_modes(n_modes)
-    return {**METRICS, **{f"reduction_db_mode{i + 1}": reduction.replace("mode i", f"mode {i + 1}") for i in range(n_modes)}}
+    return {**METRICS, **{f"reduction_db_mode{i + 1}": re.sub(r"\bmode i\b", f"mode {i + 1}", reduction) for i in range(n_modes)}}
 
 
 def _metrics_row(m: RunMetrics, open_loop_energy: jax.Array, freqs_hz: jax.Array, length_m: float, nyquist_hz: float) -> dict[str, jax.Array]:

@@ -377,7 +377,11 @@ def test_cli_refuses_unknown_config_key(tmp_path, capsys):
     bad = tmp_path / "mc.toml"
     bad.write_text("scenarioz = 3\n")
     assert cli.main(["montecarlo", "--config", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
-    assert "unknown config key(s) ['scenarioz']" in capsys.readouterr().err
+    assert f"unknown config key(s) ['scenarioz'] in {bad}; accepted: [" in capsys.readouterr().err
+    bad.write_text("[scenarios]\nhorizon = 3\n")  # a table's key, refused by the table's own check, names the file too
+    for command in ("montecarlo", "tune", "stability"):
+        assert cli.main([command, "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+        assert f"unknown scenario key(s) ['horizon'] in {bad}; accepted: [" in capsys.readouterr().err
     bad.write_text('controller = "dfs"\nsteps = 300\n[objective]\ntip_ise = 1.0\n')  # the config a tune run was given
     assert cli.main(["montecarlo", "--config", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert f"--config: {bad} is a tune config: montecarlo does not read ['objective', 'steps']. Pass the tuned.json the run wrote as --params" in capsys.readouterr().err
@@ -862,3 +866,50 @@ def test_parameters_the_controller_does_not_read_leave_the_fingerprint():
     assert MCConfig(controller="fuzzy", params={"k1": 1.02}, n_scenarios=2, scenarios=spec).fingerprint() == fuzzy.fingerprint()
     assert MCConfig(controller="fuzzy", params={"k1": 1.5}, n_scenarios=2, scenarios=spec).fingerprint() != fuzzy.fingerprint()
     assert MCConfig(controller="dfs", params={"k": 30.0}, n_scenarios=2, scenarios=spec).fingerprint() != MCConfig(controller="dfs", n_scenarios=2, scenarios=spec).fingerprint()
+
+
+def test_metric_definitions_name_each_mode_and_keep_their_words():
+    """"mode i" becomes "mode 2" and nothing else: "the mode is at or above" read "the mode 2s"."""
+    doc = montecarlo.metric_names(3)["reduction_db_mode2"]
+    assert doc == montecarlo.REDUCTION_DOC.replace("at mode i of", "at mode 2 of") and "NaN when the mode is at or above" in doc
+
+
+@pytest.mark.parametrize("command", ["tune", "montecarlo"])
+def test_unit_slips_in_the_scenarios_are_noted_before_the_run(tmp_path, monkeypatch, capsys, command):
+    """A horizon shorter than mode 1's period (a modulus in GPa: 0.0007 Hz) and initial
+    deflections that are not small against the arm (q0_std_m = 1 meant as 1 mm; a modal
+    velocity over mode 1's frequency) are noted, naming where each value came from."""
+    import tuning.run
+    from jaxflex import cli
+
+    class Ran(Exception):
+        pass
+
+    def ran(*args, **kwargs):
+        raise Ran
+
+    monkeypatch.setattr(tuning.run, "run_tune", ran)
+    monkeypatch.setattr(montecarlo, "run_montecarlo", ran)
+    config = tmp_path / "arm.toml"
+
+    def notes(text):
+        config.write_text(text)
+        with pytest.raises(Ran):
+            cli.main([command, "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress"])
+        return [line for line in capsys.readouterr().err.splitlines() if line.startswith("note:")]
+
+    assert notes("") == []  # the defaults: 1 mm and 1e-5 m/s, 13.3 Hz over 1 or 3 s
+    slow = BeamParams(youngs_modulus_pa=200.0)
+    f1 = float(beam.natural_frequencies_hz(slow, 2)[0])
+    horizon = 3 if command == "montecarlo" else 1  # each command's default horizon_s
+    assert 1 / f1 > 100
+    assert notes("[beam]\nyoungs_modulus_pa = 200\n") == [
+        f"note: mode 1's period, {1 / f1:.3g} s, is longer than the horizon, horizon_s = {horizon} s (the default), so a run sees less than one cycle of it "
+        "(or the arm's values are off: a modulus in GPa or a length in mm lowers its frequencies)"]
+    tail = ": the model is linear, for deflections small against the length, and montecarlo counts a tip beyond the length as diverged (SI units: 1 mm is 0.001)"
+    assert notes("[scenarios]\nq0_std_m = 1\n") == [f"note: [scenarios] q0_std_m = 1 m of {config} gives initial modal deflections of 111% of the arm's length, 0.9 m" + tail]
+    assert notes("[scenarios]\nq0_std_m = 0.09\n") == []  # a tenth of the length: no note
+    f1 = float(beam.natural_frequencies_hz(BeamParams(), 2)[0])
+    v = 0.2 * 0.9 * 2 * np.pi * f1  # a velocity that swings mode 1 to a fifth of the length
+    assert notes(f"[scenarios]\nqdot0_std_m_s = {v!r}\n") == [
+        f"note: [scenarios] qdot0_std_m_s = {v:g} m/s of {config} gives initial modal deflections, over mode 1's {f1:.4g} Hz, of 20% of the arm's length, 0.9 m" + tail]
