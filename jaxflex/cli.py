@@ -634,6 +634,9 @@ def _montecarlo(args: argparse.Namespace) -> int:
         config = MCConfig(**values)
     if unused := sorted(set(values.get("params", {})) - set(PARAMETERS[config.controller])):
         print(f"note: {config.controller} does not use [params] {', '.join(unused)} of {args.config} (it reads {', '.join(PARAMETERS[config.controller]) or 'none'})", file=sys.stderr)
+    if "k" in PARAMETERS[config.controller] and (k := config.params.get("k", 0.0)) < 0:  # the analysis takes either sign; tune's k stays positive
+        print(f"note: [params] k = {k:g} of {args.config} is negative, the opposite sign to the paper's 55: for delays short against "
+              "the modes' periods it feeds energy into the arm (jaxflex stability --k shows where such a loop is stable)", file=sys.stderr)
     if tuned is not None and (differences := tuned.differences(config.beam, config.n_modes, config.scenarios.dt, config.method)):
         print(f"note: {args.params} was tuned for {', '.join(differences)}; --config sets what runs here", file=sys.stderr)
     with _as_typed(sources):

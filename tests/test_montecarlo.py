@@ -913,3 +913,24 @@ def test_unit_slips_in_the_scenarios_are_noted_before_the_run(tmp_path, monkeypa
     v = 0.2 * 0.9 * 2 * np.pi * f1  # a velocity that swings mode 1 to a fifth of the length
     assert notes(f"[scenarios]\nqdot0_std_m_s = {v!r}\n") == [
         f"note: [scenarios] qdot0_std_m_s = {v:g} m/s of {config} gives initial modal deflections, over mode 1's {f1:.4g} Hz, of 20% of the arm's length, 0.9 m" + tail]
+
+
+def test_a_negative_dfs_gain_is_noted(tmp_path, monkeypatch, capsys):
+    """[params] k = -55 ran with every scenario diverged and no word; it is noted (not refused:
+    the stability analysis takes either sign), and not for a controller that does not read k."""
+    from jaxflex import cli
+
+    class Ran(Exception):
+        pass
+
+    def ran(*args, **kwargs):
+        raise Ran
+
+    monkeypatch.setattr(montecarlo, "run_montecarlo", ran)
+    config = tmp_path / "mc.toml"
+    config.write_text("[params]\nk = -55\n")
+    for controller, noted in (("dfs", True), ("dfs+fuzzy", True), ("fuzzy", False)):
+        with pytest.raises(Ran):
+            cli.main(["montecarlo", "--config", str(config), "--controller", controller, "--out", str(tmp_path / "o")])
+        err = capsys.readouterr().err
+        assert (f"note: [params] k = -55 of {config} is negative, the opposite sign to the paper's 55" in err) is noted
