@@ -283,7 +283,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return status
     except (ValueError, OSError) as err:
         message, config = str(err), getattr(args, "config", None)
-        if config and message.startswith("unknown ") and " key(s) " in message:  # fileio.check_keys on the config's tables: name the file, as range refusals do
+        if config and message.startswith("unknown ") and "; accepted" in message:  # the config's unknown keys (fileio.check_keys, [initial]): name the file, as range refusals do
             message = message.replace("; accepted", f" in {config}; accepted", 1)
         print(f"jaxflex {args.command}: error: {message}", file=sys.stderr)
         return 2
@@ -492,7 +492,7 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
 
 def _scenario_notes(arm, n_modes: int, spec, given: dict, config: str | None) -> list[str]:
     """What in a run's scenarios looks like a unit slip, said before the run: a horizon shorter
-    than a period of mode 1 (a modulus in GPa gave 0.00017 Hz, and tune ran on), and initial
+    than a period of mode 1 (a modulus of 200 meant in GPa gave 0.0007 Hz, and tune ran on), and initial
     deflections that are not small against the arm (q0_std_m = 1 meant as 1 mm: tune trained on
     tips at 2 m of a 0.9 m arm, which montecarlo counts as diverged)."""
     import numpy as np
@@ -510,7 +510,7 @@ def _scenario_notes(arm, n_modes: int, spec, given: dict, config: str | None) ->
                      "(or the arm's values are off: a modulus in GPa or a length in mm lowers its frequencies)")
     for key, unit, scale in (("q0_std_m", "m", spec.q0_std_m), ("qdot0_std_m_s", "m/s", spec.qdot0_std_m_s / (2 * np.pi * f1))):
         if scale > 0.1 * length:
-            how = "" if key == "q0_std_m" else f", over mode 1's {f1:.4g} Hz,"
+            how = "" if key == "q0_std_m" else f", over mode 1's angular frequency (2 pi x {f1:.4g} Hz),"
             notes.append(f"{named(key, unit)} gives initial modal deflections{how} of {scale / length:.0%} of the arm's length, {length:g} m: "
                          "the model is linear, for deflections small against the length, and montecarlo counts a tip beyond the length as diverged (SI units: 1 mm is 0.001)")
     return notes
@@ -635,7 +635,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     if unused := sorted(set(values.get("params", {})) - set(PARAMETERS[config.controller])):
         print(f"note: {config.controller} does not use [params] {', '.join(unused)} of {args.config} (it reads {', '.join(PARAMETERS[config.controller]) or 'none'})", file=sys.stderr)
     if "k" in PARAMETERS[config.controller] and (k := config.params.get("k", 0.0)) < 0:  # the analysis takes either sign; tune's k stays positive
-        print(f"note: [params] k = {k:g} of {args.config} is negative, the opposite sign to the paper's 55: for delays short against "
+        print(f"note: {f'k = {k:g} of {args.params}' if tuned is not None else f'[params] k = {k:g} of {args.config}'} is negative, the opposite sign to the paper's 55: for delays short against "
               "the modes' periods it feeds energy into the arm (jaxflex stability --k shows where such a loop is stable)", file=sys.stderr)
     if tuned is not None and (differences := tuned.differences(config.beam, config.n_modes, config.scenarios.dt, config.method)):
         print(f"note: {args.params} was tuned for {', '.join(differences)}; --config sets what runs here", file=sys.stderr)
@@ -844,10 +844,13 @@ def _stability(args: argparse.Namespace) -> int:
           f"{'none up to ' + format(result['first_destabilising_delay_sampled_tau_max_s'], 'g') + ' s' if sampled is None else f'{sampled:g} s'}), "
           f"continuous loop's rightmost root {_root(root)} ({'stable' if result['stable_continuous'] else 'UNSTABLE'})")
     more = result["first_destabilising_delay_more_modes"]
-    if more is not None and _moved(first, more["s"]):
+    if more["error"] is not None:
+        print(f"note: the first destabilising delay was not rechecked with {more['n_modes']} modes: {more['error']}", file=sys.stderr)
+    elif _moved(first, more["s"]):
         freq = next((c["freq_hz"] for c in result["crossings"] if first is not None and first in c["tau_s"]), None)
         top = float(natural_frequencies_hz(arm, n_modes)[-1])
-        where = "" if freq is None else f" (its crossing, at {freq:.4g} Hz, {'lies above' if freq > top else 'against'} the model's top mode, {top:.4g} Hz)"
+        above = f", above the model's top mode, {top:.4g} Hz" if freq is not None and freq > top else ""
+        where = "" if freq is None else f" (its crossing is at {freq:.4g} Hz{above})"
         print(f"note: with {more['n_modes']} modes the continuous loop's first destabilising delay is {'none' if more['s'] is None else format(more['s'], 'g') + ' s'} against "
               f"{'none' if first is None else format(first, 'g') + ' s'} with {n_modes}{where}: it moves with the modes the model leaves out; "
               f"--modes {more['n_modes']} analyses the larger model", file=sys.stderr)

@@ -126,9 +126,9 @@ def run(
         first = st.first_destabilising_delay(k, plant=plant, tau_max_s=max(1.0, 2 * tau_max))
         n_more = n_modes + MORE_MODES
         try:
-            first_more = st.first_destabilising_delay(k, plant=make_plant(arm, n_more), tau_max_s=max(1.0, 2 * tau_max))
-        except ValueError:  # beyond the modes whose characteristic polynomial float64 holds
-            first_more = None
+            first_more, more_error = st.first_destabilising_delay(k, plant=make_plant(arm, n_more), tau_max_s=max(1.0, 2 * tau_max)), None
+        except ValueError as err:  # beyond the modes whose characteristic polynomial float64 holds (17 on the paper's arm)
+            first_more, more_error = None, str(err)
 
         say("rightmost root (Chebyshev collocation of the generator)")
         rightmost = st.rightmost_root_converged(plant, k, tau, n_cheb)
@@ -177,8 +177,9 @@ def run(
         "zero_crossing": None if crit.zero_crossing is None else crit.zero_crossing._asdict(),
         "first_destabilising_delay_s": first,
         "first_destabilising_validation": validation,
-        # null when the larger model's characteristic polynomial overflows float64
-        "first_destabilising_delay_more_modes": None if first_more is None else {"n_modes": n_more, "s": first_more},
+        # s null: no destabilising delay; error: why none was computed (the larger model's
+        # characteristic polynomial overflows float64)
+        "first_destabilising_delay_more_modes": {"n_modes": n_more, "s": first_more, "error": more_error},
         "first_destabilising_delay_sampled_s": first_sampled,
         "first_destabilising_delay_sampled_tau_max_s": d_max * dt,
         "spectral_radius": radius,

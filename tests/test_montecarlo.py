@@ -382,6 +382,9 @@ def test_cli_refuses_unknown_config_key(tmp_path, capsys):
     for command in ("montecarlo", "tune", "stability"):
         assert cli.main([command, "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
         assert f"unknown scenario key(s) ['horizon'] in {bad}; accepted: [" in capsys.readouterr().err
+    bad.write_text("[initial]\nkk = 3\n")  # tune's own check of [initial]
+    assert cli.main(["tune", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert f"unknown initial parameter(s) ['kk'] for dfs in {bad}; accepted: ['k', 'tau_s']" in capsys.readouterr().err
     bad.write_text('controller = "dfs"\nsteps = 300\n[objective]\ntip_ise = 1.0\n')  # the config a tune run was given
     assert cli.main(["montecarlo", "--config", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert f"--config: {bad} is a tune config: montecarlo does not read ['objective', 'steps']. Pass the tuned.json the run wrote as --params" in capsys.readouterr().err
@@ -874,27 +877,33 @@ def test_metric_definitions_name_each_mode_and_keep_their_words():
     assert doc == montecarlo.REDUCTION_DOC.replace("at mode i of", "at mode 2 of") and "NaN when the mode is at or above" in doc
 
 
-@pytest.mark.parametrize("command", ["tune", "montecarlo"])
-def test_unit_slips_in_the_scenarios_are_noted_before_the_run(tmp_path, monkeypatch, capsys, command):
-    """A horizon shorter than mode 1's period (a modulus in GPa: 0.0007 Hz) and initial
-    deflections that are not small against the arm (q0_std_m = 1 meant as 1 mm; a modal
-    velocity over mode 1's frequency) are noted, naming where each value came from."""
-    import tuning.run
-    from jaxflex import cli
+class _Ran(Exception):
+    """Raised in place of a tune or Monte Carlo run: what a command says before it runs is under test."""
 
-    class Ran(Exception):
-        pass
+
+@pytest.fixture
+def no_run(monkeypatch):
+    import tuning.run
 
     def ran(*args, **kwargs):
-        raise Ran
+        raise _Ran
 
     monkeypatch.setattr(tuning.run, "run_tune", ran)
     monkeypatch.setattr(montecarlo, "run_montecarlo", ran)
+
+
+@pytest.mark.parametrize("command", ["tune", "montecarlo"])
+def test_unit_slips_in_the_scenarios_are_noted_before_the_run(tmp_path, no_run, capsys, command):
+    """A horizon shorter than mode 1's period (a modulus of 200 meant in GPa: 0.0007 Hz) and initial
+    deflections that are not small against the arm (q0_std_m = 1 meant as 1 mm; a modal
+    velocity over mode 1's angular frequency) are noted, naming where each value came from."""
+    from jaxflex import cli
+
     config = tmp_path / "arm.toml"
 
     def notes(text):
         config.write_text(text)
-        with pytest.raises(Ran):
+        with pytest.raises(_Ran):
             cli.main([command, "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress"])
         return [line for line in capsys.readouterr().err.splitlines() if line.startswith("note:")]
 
@@ -908,29 +917,22 @@ def test_unit_slips_in_the_scenarios_are_noted_before_the_run(tmp_path, monkeypa
         "(or the arm's values are off: a modulus in GPa or a length in mm lowers its frequencies)"]
     tail = ": the model is linear, for deflections small against the length, and montecarlo counts a tip beyond the length as diverged (SI units: 1 mm is 0.001)"
     assert notes("[scenarios]\nq0_std_m = 1\n") == [f"note: [scenarios] q0_std_m = 1 m of {config} gives initial modal deflections of 111% of the arm's length, 0.9 m" + tail]
-    assert notes("[scenarios]\nq0_std_m = 0.09\n") == []  # a tenth of the length: no note
+    assert notes("[scenarios]\nq0_std_m = 0.08\n") == []  # under a tenth of the length: no note
     f1 = float(beam.natural_frequencies_hz(BeamParams(), 2)[0])
     v = 0.2 * 0.9 * 2 * np.pi * f1  # a velocity that swings mode 1 to a fifth of the length
     assert notes(f"[scenarios]\nqdot0_std_m_s = {v!r}\n") == [
-        f"note: [scenarios] qdot0_std_m_s = {v:g} m/s of {config} gives initial modal deflections, over mode 1's {f1:.4g} Hz, of 20% of the arm's length, 0.9 m" + tail]
+        f"note: [scenarios] qdot0_std_m_s = {v:g} m/s of {config} gives initial modal deflections, over mode 1's angular frequency (2 pi x {f1:.4g} Hz), of 20% of the arm's length, 0.9 m" + tail]
 
 
-def test_a_negative_dfs_gain_is_noted(tmp_path, monkeypatch, capsys):
+def test_a_negative_dfs_gain_is_noted(tmp_path, no_run, capsys):
     """[params] k = -55 ran with every scenario diverged and no word; it is noted (not refused:
     the stability analysis takes either sign), and not for a controller that does not read k."""
     from jaxflex import cli
 
-    class Ran(Exception):
-        pass
-
-    def ran(*args, **kwargs):
-        raise Ran
-
-    monkeypatch.setattr(montecarlo, "run_montecarlo", ran)
     config = tmp_path / "mc.toml"
     config.write_text("[params]\nk = -55\n")
     for controller, noted in (("dfs", True), ("dfs+fuzzy", True), ("fuzzy", False)):
-        with pytest.raises(Ran):
+        with pytest.raises(_Ran):
             cli.main(["montecarlo", "--config", str(config), "--controller", controller, "--out", str(tmp_path / "o")])
         err = capsys.readouterr().err
         assert (f"note: [params] k = -55 of {config} is negative, the opposite sign to the paper's 55" in err) is noted
