@@ -172,6 +172,23 @@ def test_report_states_whether_the_papers_ordering_holds(reproduced):
         assert f"than the fuzzy controller at both modes {word} with" in text, (dfs_db, fuzzy_db)
 
 
+def test_frequency_notes_say_whose_value_is_above_the_pinned_free_bound(reproduced):
+    """The paper's 16 Hz is above the pinned-free bound (14.33 Hz); the 2-mode model's 13.32 is
+    not; a 1-mode model's 15.70 is too, and the note said only "above the bound" beside it."""
+    from jaxflex.beam import BeamParams, exact_natural_frequencies_hz, natural_frequencies_hz
+    from jaxflex.report import _report_md
+
+    _, res = reproduced
+    bound = res["model"]["pinned_free_bound_hz"]
+    two = _report_md(res)
+    assert "| differs: the paper's is above the pinned-free bound |" in two and "model's too" not in two
+    one = float(natural_frequencies_hz(BeamParams(), 1)[0])
+    assert one > bound > float(exact_natural_frequencies_hz(BeamParams(), 1)[0])
+    model = {**res["model"], "n_modes": 1, "natural_frequencies_hz": [one]}
+    text = _report_md({**res, "model": model})
+    assert "| differs: the paper's is above the pinned-free bound; the 1-mode model's too: assumed-mode frequencies converge to the exact ones from above |" in text
+
+
 def test_bad_modes_is_refused(capsys):
     with pytest.raises(SystemExit):
         cli.main(["reproduce", "--modes", "0"])
@@ -189,8 +206,11 @@ def test_modes_the_papers_rk4_step_cannot_hold_are_refused_before_any_work(tmp_p
     # frequency, and RK4's stability edge for it is omega dt ~ 2.83 (mode 7 at 1 ms is below)
     highest = np.asarray(natural_frequencies_hz(BeamParams(), 8), float)
     assert 2 * np.pi * highest[-1] * 1e-3 > 2.83 > 2 * np.pi * np.asarray(natural_frequencies_hz(BeamParams(), 7), float)[-1] * 1e-3
-    assert "n_modes = 8 (--modes)" in err and f"{highest[-1]:.4g} Hz" in err and "n_modes <= 7" in err
+    assert "n_modes = 8 (--modes)" in err and f"|s| = 2 pi x {highest[-1]:.4g} Hz" in err and "n_modes <= 7" in err
     assert not (tmp_path / "r8").exists()
+    assert cli.main(["reproduce", "--modes", "30", "--out", str(tmp_path / "r30")]) == 2  # the same largest count, searched from 1 up (from 29 down, 100 modes took 2 min)
+    err = capsys.readouterr().err
+    assert "n_modes = 30 (--modes)" in err and "n_modes <= 7" in err and not (tmp_path / "r30").exists()
 
 
 def test_reduction_bars_leave_out_a_diverged_run():
