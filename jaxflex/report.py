@@ -108,7 +108,8 @@ def _report_md(results: dict[str, Any]) -> str:
         "(q1(0) = 1e-3 m, q1_dot(0) = 1e-5 m/s). Rayleigh damping: 1 % in both flexible modes of the 2-mode model "
         f"(alpha = {model['rayleigh_alpha']:.4g} 1/s, beta = {model['rayleigh_beta']:.4g} s; the paper gives no values); "
         f"its alpha M term also damps the hub's rigid rotation, like viscous hub friction (a real pole at -alpha = {-model['rayleigh_alpha']:.4g} 1/s).",
-        f"Controllers, with the paper's gains: DFS k = {dfs['k']:g} N*m/rad, tau = {dfs['tau_s'] * 1e3:g} ms; PD-type fuzzy "
+        f"Controllers, with the paper's gains: DFS u = -k (theta(t) - theta(t - tau)), k = {dfs['k']:g} N*m/rad, tau = {dfs['tau_s'] * 1e3:g} ms "
+        "(the sign of the paper's eqs. (9)-(10) and final controller; its eq. (8) prints +, which is unstable); PD-type fuzzy "
         f"k1 = {fz['k1']:g}, k2 = {fz['k2']:g}, k3 = {fz['k3']:g}, the paper's {len(PAPER_RULES)} rules and set centres, {fz['defuzz']} defuzzification.",
         "",
         "## Where the model and the paper differ, in short",
