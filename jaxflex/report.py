@@ -195,6 +195,11 @@ def _report_md(results: dict[str, Any]) -> str:
         f"The paper's conclusion that DFS reduces vibration more than the fuzzy controller {compared} {ordering} "
         f"with jaxflex's default estimator. Comparing {'mode 1 (the paper compares modes 1-2)' if len(dfs_db) == 1 else f'modes 1-{len(dfs_db)}, as the paper does'}, "
         f"DFS is ahead, by estimator: {'; '.join(by_estimator)}.",
+    ]
+    amplified = [f"{plotting.LABELS[run]} at mode {m + 1} (by {-v:.1f} dB)" for run in ("dfs", "fuzzy") for m, v in enumerate(results["vibration_reduction_db"][run]) if v is not None and v < 0]
+    if amplified:  # DFS at mode 4 of a 4-mode model: -16.5 dB, not a word
+        lines += ["", f"A negative reduction is an amplification, the closed loop raising the vibration; with the default estimator: {', '.join(amplified)}."]
+    lines += [
         "",
         "## Figures",
         "",

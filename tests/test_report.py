@@ -189,6 +189,18 @@ def test_frequency_notes_say_whose_value_is_above_the_pinned_free_bound(reproduc
     assert "| differs: the paper's is above the pinned-free bound; the 1-mode model's too: assumed-mode frequencies converge to the exact ones from above |" in text
 
 
+def test_an_amplified_mode_is_said_to_be(reproduced):
+    """A negative reduction (DFS at mode 4 of the 4-mode model: -16.5 dB) is named as an amplification."""
+    from jaxflex import plotting
+    from jaxflex.report import _report_md
+
+    _, res = reproduced
+    assert "amplification" not in _report_md(res)  # the paper's 2-mode run damps both modes
+    dfs_db = [10.0, -16.46]
+    text = _report_md({**res, "vibration_reduction_db": {**res["vibration_reduction_db"], "dfs": dfs_db}})
+    assert f"A negative reduction is an amplification, the closed loop raising the vibration; with the default estimator: {plotting.LABELS['dfs']} at mode 2 (by 16.5 dB)." in text
+
+
 def test_bad_modes_is_refused(capsys):
     with pytest.raises(SystemExit):
         cli.main(["reproduce", "--modes", "0"])
