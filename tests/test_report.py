@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from jaxflex import beam, cli, fileio, plotting
+from jaxflex.plant import make_plant
 from jaxflex.report import FIGURES, reproduce
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,6 +36,12 @@ def test_results_json_has_the_documented_keys(reproduced):
     freqs = res["model"]["natural_frequencies_hz"]
     assert freqs == sorted(freqs) and len(freqs) == 2
     np.testing.assert_allclose(freqs, np.asarray(beam.natural_frequencies_hz(beam.BeamParams(), 2)), rtol=1e-6)
+    # each mode's damping ratio, as the continuous plant's flexible poles have it (-Re s / |s|): 1 % in the 2-mode model
+    with jax.enable_x64(True):
+        lam = np.linalg.eigvals(np.asarray(make_plant(beam.BeamParams(), 2).A))
+    flexible = sorted(lam[lam.imag > 1.0], key=abs)
+    np.testing.assert_allclose(res["model"]["damping_ratios"], [-s.real / abs(s) for s in flexible], rtol=1e-5)
+    np.testing.assert_allclose(res["model"]["damping_ratios"], 0.01, rtol=1e-5)
     for run in ("open_loop", "dfs", "fuzzy"):
         for sig in ("q1", "tip_deflection_m", "hub_angle_rad"):
             assert set(res["runs"][run][sig]) >= {"min", "max", "settling_time_s"}
