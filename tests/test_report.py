@@ -161,9 +161,9 @@ def test_reported_numbers_against_independent_computations(reproduced):
 
     # report.md's cells are those numbers, in their columns
     report = (out / "report.md").read_text()
-    exact = res["model"]["exact_natural_frequencies_hz"]
-    assert f"| 1 | 16 | {modes[0]:.3f} | {exact[0]:.3f} |" in report
-    assert f"| 2 | 55 | {modes[1]:.3f} | {exact[1]:.3f} |" in report
+    exact, zeta = res["model"]["exact_natural_frequencies_hz"], res["model"]["damping_ratios"]  # the ratios checked against the plant's poles above
+    assert f"| 1 | 16 | {modes[0]:.3f} | {zeta[0]:.3g} | {exact[0]:.3f} |" in report
+    assert f"| 2 | 55 | {modes[1]:.3f} | {zeta[1]:.3g} | {exact[1]:.3f} |" in report
     dfs = res["runs"]["dfs"]
     assert f"| DFS | settling time | 0.25 s | {dfs['q1']['settling_time_s']:.3f} s | {dfs['tip_deflection_m']['settling_time_s']:.3f} s |" in report
 
