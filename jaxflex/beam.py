@@ -343,6 +343,16 @@ def rayleigh_coefficients(params: BeamParams) -> tuple[jax.Array, jax.Array]:
     return 2.0 * z * w1 * w2 / (w1 + w2), 2.0 * z / (w1 + w2)
 
 
+def modal_damping_ratios(params: BeamParams, freqs_hz: ArrayLike) -> jax.Array:
+    """Each flexible mode's damping ratio under ``alpha M + beta K``
+    (:func:`rayleigh_coefficients`): ``alpha / (2 w) + beta w / 2`` at ``w = 2 pi f``, for the
+    model's ``freqs_hz`` (:func:`natural_frequencies_hz`). ``damping_ratio`` is that of the
+    2-mode model, so with other n_modes the modes run with other ratios."""
+    alpha, beta = rayleigh_coefficients(params)
+    omega = 2 * jnp.pi * jnp.asarray(freqs_hz)
+    return alpha / (2 * omega) + beta * omega / 2
+
+
 def modal_matrices(params: BeamParams, n_modes: int = 2) -> ModalMatrices:
     """Mass, stiffness and Rayleigh damping matrices of the n-mode model (closed form).
 

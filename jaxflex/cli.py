@@ -463,7 +463,7 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
     ran a Monte Carlo whose every run diverged)."""
     import numpy as np
 
-    from jaxflex.beam import natural_frequencies_hz, rayleigh_coefficients
+    from jaxflex.beam import modal_damping_ratios, natural_frequencies_hz, rayleigh_coefficients
     from jaxflex.plant import check_dt
 
     check_dt(dt)
@@ -473,11 +473,8 @@ def _model_line(arm, n_modes: int, dt: float) -> str:
         raise ValueError(f"dt must be below {0.5 / freqs[0]:.3g} s, for the arm's first flexible mode, {freqs[0]:.4g} Hz, to lie below the Nyquist frequency "
                          f"0.5 / dt, or the controller cannot see the vibration it is to damp; got {dt:g} s (Nyquist {nyquist:.4g} Hz; dt is in seconds: 1 ms is 0.001, "
                          "and is set by a --config's [scenarios] dt, or stability's --dt. Or the arm's values are off: a thickness in mm raises its frequencies)")
-    # each flexible mode's own ratio (exact for Rayleigh damping): damping_ratio is that of the
-    # 2-mode model, so with other n_modes the modes run with other ratios
     alpha, beta = (float(c) for c in rayleigh_coefficients(arm))
-    omega = 2 * np.pi * freqs
-    ratios = ", ".join(f"{z:.4g}" for z in alpha / (2 * omega) + beta * omega / 2)
+    ratios = ", ".join(f"{z:.4g}" for z in np.asarray(modal_damping_ratios(arm, freqs), float))
     given = f"damping_ratio = {float(arm.damping_ratio):g} of the 2-mode model" if arm.rayleigh_alpha is None else f"Rayleigh alpha = {alpha:g} 1/s, beta = {beta:g} s"
     damping = f"damping ratio{'s' if n_modes > 1 else ''} {ratios} in flexible {_first_modes(n_modes)} ({given})"
     line = f"model: {n_modes} mode(s) at {', '.join(f'{f:.4g}' for f in freqs)} Hz with {damping}, sampled every {dt:g} s (Nyquist {nyquist:.4g} Hz)"

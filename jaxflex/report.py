@@ -471,7 +471,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
             "rayleigh_alpha": fileio.shortest(alpha),
             "rayleigh_beta": fileio.shortest(beta),
             # each flexible mode's own ratio under alpha M + beta K (1 % only in the 2-mode model's two)
-            "damping_ratios": fileio.shortest(alpha / (4 * np.pi * freqs_model) + beta * np.pi * freqs_model),
+            "damping_ratios": fileio.shortest(np.asarray(beam.modal_damping_ratios(params, freqs_model))),
             "dt_s": DT,
             "horizon_s": HORIZON_S,
             "integrator": "rk4",
