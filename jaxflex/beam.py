@@ -347,7 +347,17 @@ def modal_damping_ratios(params: BeamParams, freqs_hz: ArrayLike) -> jax.Array:
     """Each flexible mode's damping ratio under ``alpha M + beta K``
     (:func:`rayleigh_coefficients`): ``alpha / (2 w) + beta w / 2`` at ``w = 2 pi f``, for the
     model's ``freqs_hz`` (:func:`natural_frequencies_hz`). ``damping_ratio`` is that of the
-    2-mode model, so with other n_modes the modes run with other ratios."""
+    2-mode model, so with other n_modes the modes run with other ratios.
+
+    Raises:
+      ValueError: naming ``params`` fields out of range (``check_beam_params``), or concrete
+        ``freqs_hz`` that are not finite numbers > 0 (Hz).
+    """
+    check_beam_params(params)
+    if not isinstance(freqs_hz, jax.core.Tracer):
+        f = checks.real_array("freqs_hz", freqs_hz)
+        if not np.all(np.isfinite(f) & (f > 0)):
+            raise ValueError(f"freqs_hz must be finite frequencies > 0 (Hz), the model's natural_frequencies_hz; got {f.tolist()}")
     alpha, beta = rayleigh_coefficients(params)
     omega = 2 * jnp.pi * jnp.asarray(freqs_hz)
     return alpha / (2 * omega) + beta * omega / 2

@@ -397,3 +397,21 @@ def test_every_public_arm_function_refuses_a_bad_arm_by_name(params, match):
 def test_exact_frequencies_refuse_an_arm_beyond_float64(kwargs, match):
     with pytest.raises(ValueError, match=match):
         beam.exact_natural_frequencies_hz(BeamParams(**kwargs))
+
+
+def test_modal_damping_ratios_are_the_poles_ratios_and_refuse_nonsense():
+    """Each flexible pole's -Re s / |s| of a 4-mode plant (float64) is the ratio given for
+    its frequency; non-positive or NaN frequencies and a negative length are refused by name."""
+    from jaxflex.plant import make_plant
+
+    with jax.enable_x64(True):
+        arm = beam.BeamParams()
+        freqs = np.asarray(beam.natural_frequencies_hz(arm, 4))
+        lam = np.linalg.eigvals(np.asarray(make_plant(arm, 4).A))
+        poles = sorted(lam[lam.imag > 1.0], key=abs)
+        np.testing.assert_allclose(np.asarray(beam.modal_damping_ratios(arm, freqs)), [-s.real / abs(s) for s in poles], rtol=1e-9)
+    for bad in ([13.3, 0.0], [float("nan")], [-1.0]):
+        with pytest.raises(ValueError, match=r"freqs_hz must be finite frequencies > 0 \(Hz\)"):
+            beam.modal_damping_ratios(beam.BeamParams(), bad)
+    with pytest.raises(ValueError, match="length_m"):
+        beam.modal_damping_ratios(beam.BeamParams(length_m=-1.0), [13.3])
