@@ -282,9 +282,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         _raise_pending()  # one dropped after the runs' last check: their files are complete, but the user asked to stop
         return status
     except (ValueError, OSError) as err:
-        message, config = str(err), getattr(args, "config", None)
-        if config and message.startswith("unknown ") and "; accepted" in message:  # the config's unknown keys (fileio.check_keys, [initial]): name the file, as range refusals do
-            message = message.replace("; accepted", f" in {config}; accepted", 1)
+        config = getattr(args, "config", None)
+        # A config's unknown keys name its file, as range refusals do (_sources): only a
+        # config's tables are checked for unknown keys (tuned.json's refusals name it already).
+        message = err.located(config) if config and isinstance(err, fileio.UnknownKeys) else str(err)
         print(f"jaxflex {args.command}: error: {message}", file=sys.stderr)
         return 2
     except RuntimeError as err:  # jax.errors.JaxRuntimeError, a RuntimeError

@@ -350,11 +350,26 @@ def _is_json(path: str | os.PathLike) -> bool:
     return True
 
 
+class UnknownKeys(ValueError):
+    """Unknown keys of a table (``unknown config key(s) ['x']; accepted: [...]``). The
+    library does not know the file a table came from; the command line, which does, names
+    it with ``located``."""
+
+    def __init__(self, what: str, unknown: Any, accepted: Any, qualifier: str = ""):
+        self.what, self.unknown, self.accepted, self.qualifier = what, sorted(unknown), sorted(accepted), qualifier
+        super().__init__(self.located(None))
+
+    def located(self, path: str | os.PathLike | None) -> str:
+        """The message, saying that the keys are in ``path`` (None: no file)."""
+        where = f" in {path}" if path is not None else ""
+        return f"unknown {self.what} {self.unknown}{self.qualifier}{where}; accepted: {self.accepted}"
+
+
 def check_keys(values: Any, accepted: Any, what: str) -> None:
-    """Refuse a config table that is not a table, or has unknown keys, by name, listing the
-    accepted ones."""
+    """Refuse a config table that is not a table, or has unknown keys (``UnknownKeys``), by
+    name, listing the accepted ones."""
     if not isinstance(values, Mapping):
         raise ValueError(f"{what} must be a table of keys (accepted: {sorted(accepted)}); got {values!r}")
-    unknown = sorted(set(values) - set(accepted))
+    unknown = set(values) - set(accepted)
     if unknown:
-        raise ValueError(f"unknown {what} key(s) {unknown}; accepted: {sorted(accepted)}")
+        raise UnknownKeys(f"{what} key(s)", unknown, accepted)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import jaxflex as jf
-from jaxflex import beam, montecarlo, plotting
+from jaxflex import beam, fileio, montecarlo, plotting
 from jaxflex.controllers import OpenLoopParams, open_loop
 from jaxflex.controllers.registry import PAPER_PARAMS
 from jaxflex.heartbeat import Heartbeat
@@ -373,6 +373,7 @@ def test_impossible_descriptions_are_refused(make, match):
 
 def test_cli_refuses_unknown_config_key(tmp_path, capsys):
     from jaxflex import cli
+    from tuning.tuner import TuneConfig
 
     bad = tmp_path / "mc.toml"
     bad.write_text("scenarioz = 3\n")
@@ -385,6 +386,9 @@ def test_cli_refuses_unknown_config_key(tmp_path, capsys):
     bad.write_text("[initial]\nkk = 3\n")  # tune's own check of [initial]
     assert cli.main(["tune", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert f"unknown initial parameter(s) ['kk'] for dfs in {bad}; accepted: ['k', 'tau_s']" in capsys.readouterr().err
+    with pytest.raises(fileio.UnknownKeys) as refused:  # the library, which does not know the file, names none
+        TuneConfig.from_mapping({"initial": {"kk": 3.0}})
+    assert str(refused.value) == "unknown initial parameter(s) ['kk'] for dfs; accepted: ['k', 'tau_s']"
     bad.write_text('controller = "dfs"\nsteps = 300\n[objective]\ntip_ise = 1.0\n')  # the config a tune run was given
     assert cli.main(["montecarlo", "--config", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert f"--config: {bad} is a tune config: montecarlo does not read ['objective', 'steps']. Pass the tuned.json the run wrote as --params" in capsys.readouterr().err

@@ -125,9 +125,9 @@ class TuneConfig:
         allowed = PARAMETERS[self.controller]
         if not isinstance(self.initial, Mapping):
             raise ValueError(f"initial must be a table of parameter values by name ({sorted(allowed)}); got {self.initial!r}")
-        unknown = sorted(set(self.initial) - set(allowed))
+        unknown = set(self.initial) - set(allowed)
         if unknown:
-            raise ValueError(f"unknown initial parameter(s) {unknown} for {self.controller}; accepted: {sorted(allowed)}")
+            raise fileio.UnknownKeys("initial parameter(s)", unknown, allowed, f" for {self.controller}")
         param_values(self.initial, "initial")
         check_plants(self.scenarios, self.beam, self.n_modes, self.method)  # refuses an arm not finite in the dtype of the run, or RK4 growing one
         # Out-of-range starting values are refused here, not when tune() has made its folder.
