@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from jaxflex.analysis import PSDSettings, band_mask, band_peak, get_window, vibration_reduction_db, welch
+from jaxflex.analysis import PSDSettings, band_mask, band_peak, get_window, region_reduction_db, vibration_reduction_db, welch
 
 # Same algorithm as scipy in float64 (detrend, window, FFT, scaling); observed worst relative
 # error is ~1e-13, so 1e-6 leaves room for other FFT backends while catching any formula slip
@@ -369,3 +369,28 @@ def test_welch_and_reduction_gradients_against_scipy_central_differences():
     fd = (reduction_np(c + 1e-5) - reduction_np(c - 1e-5)) / 2e-5
     assert np.all(got != 0)
     np.testing.assert_allclose(got, fd, rtol=1e-6)
+
+
+def test_region_reduction_finds_a_moved_peak_and_tells_a_skirt():
+    """A closed loop that moves mode 1's resonance from 13 to 18 Hz: the reduction at the open
+    loop's bin (13 Hz) overstates what it removed; over mode 1's region the closed loop's
+    highest bin is its new peak. Mode 2's region (from sqrt(13 x 36) = 21.6 Hz) holds only
+    the skirt of that peak, highest at the region's first bin, 22 Hz."""
+    freqs = np.arange(0.0, 101.0)
+    lorentz = lambda f0, width, height: height / (1 + ((freqs - f0) / width) ** 2)
+    psd_open = lorentz(13.0, 0.5, 1.0) + lorentz(36.0, 0.5, 0.1) + 1e-9
+    psd_closed = lorentz(18.0, 1.0, 1e-4) + 1e-12
+    region = region_reduction_db(freqs, psd_open, psd_closed, [13.0, 36.0])
+    expected = [10 * np.log10(psd_open[13] / psd_closed[18]), 10 * np.log10(psd_open[36] / psd_closed[22])]
+    np.testing.assert_allclose(region.db, expected, rtol=1e-6)
+    np.testing.assert_array_equal(region.f_closed_hz, [18.0, 22.0])
+    np.testing.assert_array_equal(region.is_peak, [True, False])
+    at_bin = vibration_reduction_db(freqs, psd_open, psd_closed, [13.0, 36.0])
+    assert at_bin[0] > region.db[0] + 10  # the open loop's bin misses the moved peak
+    # the regions' outer edges: f1 / 2 and 2 fn (a closed-loop peak at 5 Hz lies outside mode 1's)
+    low = region_reduction_db(freqs, psd_open, lorentz(5.0, 0.5, 1.0) + 1e-12, [13.0, 36.0])
+    assert low.f_closed_hz[0] == 7.0 and not low.is_peak[0]
+    with pytest.raises(ValueError, match=r"mode_freqs_hz must be strictly increasing \(Hz\)"):
+        region_reduction_db(freqs, psd_open, psd_closed, [36.0, 13.0])
+    with pytest.raises(ValueError, match="psd_closed must be a power spectral density"):
+        region_reduction_db(freqs, psd_open, -psd_closed, [13.0, 36.0])

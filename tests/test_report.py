@@ -148,6 +148,25 @@ def test_reported_numbers_against_independent_computations(reproduced):
     q1 = reduction("q1", ESTIMATORS[first])
     for run in ("dfs", "fuzzy"):
         np.testing.assert_allclose(res["vibration_reduction_db_q1"][run], q1[run], rtol=1e-6)
+    # the least reduction over each mode's region: the open loop's peak bin against the closed
+    # loop's highest bin from f1 / 2, through the geometric midpoints, to 2 fn
+    settings = ESTIMATORS[first]
+    spectra = {name: scipy.signal.welch(np.asarray(tr.z[:, 1]), fs=1e3, window=settings.window, nperseg=settings.nperseg, noverlap=settings.noverlap, detrend=settings.detrend) for name, tr in traj.items()}
+    f, open_psd = spectra["open_loop"]
+    edges = [modes[0] / 2, float(np.sqrt(modes[0] * modes[1])), 2 * modes[1]]
+    for run in ("dfs", "fuzzy"):
+        closed = spectra[run][1]
+        for m, mode in enumerate(modes):
+            band = np.flatnonzero(np.abs(f - mode) <= 0.15 * mode)
+            region = np.flatnonzero((f >= edges[m]) & (f < edges[m + 1]))
+            top = region[np.argmax(closed[region])]
+            assert res["region_reduction_db"][run]["db"][m] == pytest.approx(10 * np.log10(open_psd[band].max() / closed[top]), rel=1e-5)
+            assert res["region_reduction_db"][run]["closed_loop_highest_hz"][m] == pytest.approx(f[top])
+            assert res["region_reduction_db"][run]["is_peak"][m] == bool(closed[top] >= max(closed[top - 1], closed[top + 1]))
+    # DFS moves mode 1 from 13.3 to 17.6 Hz, 12 dB less reduced there than at the open loop's bin, and the report says so
+    assert res["region_reduction_db"]["dfs"]["is_peak"][0] and res["region_reduction_db"]["dfs"]["closed_loop_highest_hz"][0] == pytest.approx(17.578125)
+    assert res["vibration_reduction_db"]["dfs"][0] - res["region_reduction_db"]["dfs"]["db"][0] > 10
+    assert f"DFS moves mode 1's resonance from 13.32 to 17.6 Hz, where it is {res['region_reduction_db']['dfs']['db'][0]:.1f} dB below the open-loop peak" in (out / "report.md").read_text()
 
     # settling times: the 2 % band of the README
     for run in ("dfs", "fuzzy"):
@@ -1053,6 +1072,9 @@ def test_report_tells_a_run_that_never_settled_and_a_third_mode(reproduced):
     for table in (res["vibration_reduction_db_q1"], *res["vibration_reduction_db_by_estimator"].values()):
         table["dfs"].append(1.0)
         table["fuzzy"].append(99.0)
+    for run in ("dfs", "fuzzy"):
+        for key, value in (("db", 1.0), ("closed_loop_highest_hz", 60.0), ("is_peak", False)):
+            res["region_reduction_db"][run][key].append(value)
     # DFS ahead at the paper's two modes, behind at the third: compared, it would not agree
     res["vibration_reduction_db"] = {"dfs": [90.0, 90.0, 1.0], "fuzzy": [80.0, 80.0, 99.0]}
     report = _report_md(res)
@@ -1069,6 +1091,8 @@ def test_report_tells_a_run_that_never_settled_and_a_third_mode(reproduced):
     for table in (one["vibration_reduction_db"], one["vibration_reduction_db_q1"], *one["vibration_reduction_db_by_estimator"].values()):
         for run in ("dfs", "fuzzy"):
             table[run] = table[run][:1]
+    for run in ("dfs", "fuzzy"):
+        one["region_reduction_db"][run] = {key: values[:1] for key, values in one["region_reduction_db"][run].items()}
     one_report = _report_md(one)
     assert "| 2 | 55 | n/a | " in one_report and "| not in the 1-mode model |" in one_report  # it said "differs"
     assert "Comparing mode 1 (the paper compares modes 1-2), DFS is ahead, by estimator: " in one_report
