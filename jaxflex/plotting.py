@@ -507,8 +507,10 @@ def stability_chart(
       spectral_radius: [n_tau, n_k] sampled loop (structural eigenvalue excluded); < 1 stable.
       rightmost_real: [n_tau, n_k] real part (1/s) of the continuous loop's rightmost
         non-structural root; < 0 stable. Omitted or all NaN: only the sampled loop is shown.
+        Each cell is coloured by both loops' verdicts at its (k, tau); no boundary is
+        interpolated between rows.
       first_delay_s: [n_k] first destabilising delay of the continuous loop (from the
-        crossings), drawn as a line.
+        crossings), drawn as dots.
       point: (k, tau_s) operating point to mark (the paper's 55, 0.005).
       title: figure title.
 
@@ -538,22 +540,16 @@ def stability_chart(
     cmap = matplotlib.colors.ListedColormap(colors)
     ax.pcolormesh(k, tau_ms, cls, cmap=cmap, vmin=-0.5, vmax=len(colors) - 0.5, shading="nearest")
     handles = [matplotlib.patches.Patch(color=c, label=n) for c, n in zip(colors, names) if np.any(cls == names.index(n))]
-    def crosses(values: np.ndarray, level: float) -> bool:  # a contour at level is drawn (the legend named lines that were not)
-        return bool(np.nanmin(values) < level < np.nanmax(values))
-
-    if radius.shape[0] > 1 and radius.shape[1] > 1:
-        if crosses(radius, 1.0):
-            ax.contour(k, tau_ms, radius, levels=[1.0], colors="C0", linewidths=1.2)
-            handles.append(matplotlib.lines.Line2D([], [], color="C0", lw=1.2, label="sampled: spectral radius = 1"))
-        if have_cont and crosses(np.asarray(rightmost_real, float), 0.0):
-            ax.contour(k, tau_ms, np.asarray(rightmost_real, float), levels=[0.0], colors="k", linewidths=1.0, linestyles="--")
-            handles.append(matplotlib.lines.Line2D([], [], color="k", lw=1.0, ls="--", label="continuous: rightmost Re = 0"))
+    # No contour lines: the sampled loop exists at whole samples only, and the continuous
+    # loop's rightmost root is computed on the same rows, so a contour interpolated between
+    # rows put the boundaries up to 6 % off the exact crossings (k = 150: 4.53 against 4.80 ms).
+    # The cells show both loops at their rows; the dots are the exact first crossings.
     if first_delay_s is not None:
         first = 1e3 * np.asarray(first_delay_s, float)
         ok = np.isfinite(first) & (first <= tau_ms.max())
         if ok.any():
             ax.plot(k[ok], first[ok], "o", ms=3, color="C3")
-            handles.append(matplotlib.lines.Line2D([], [], color="C3", marker="o", ms=3, ls="none", label="first destabilising delay (crossings)"))
+            handles.append(matplotlib.lines.Line2D([], [], color="C3", marker="o", ms=3, ls="none", label="continuous: first destabilising delay (exact crossings)"))
     if point is not None:
         ax.plot([point[0]], [1e3 * point[1]], marker="*", ms=14, color="k", mec="w", ls="none")
         handles.append(matplotlib.lines.Line2D([], [], color="k", marker="*", ms=10, ls="none", label=f"operating point (k = {point[0]:g}, tau = {1e3 * point[1]:g} ms)"))
