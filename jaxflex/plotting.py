@@ -310,34 +310,46 @@ def save(fig: plt.Figure, path: str | os.PathLike) -> None:
 def loss_curves(
     steps: np.ndarray, loss: np.ndarray, val_steps: np.ndarray, val: np.ndarray, title: str, best_step: int | None = None, reference: tuple[str, float] | None = None, penalised: bool = False
 ) -> plt.Figure:
-    """Training loss per step and held-out objective at each validation; log scale where the
-    finite positive values span a decade or more (over less, a log axis labels one tick).
-    ``best_step``: the step whose parameters were kept, marked by a vertical line. ``reference``:
-    ``(name, objective)`` of the gains that set the objective's scales ("paper" or "initial")
-    and their training objective, named on the axis (1 only for the mean of one unit weight;
-    the CVaR, the worst case and other weights score them otherwise). ``penalised``:
-    the loss holds the DFS stability penalty too (a fuzzy run's legend named one it had not)."""
-    fig, ax = plt.subplots(figsize=(7.0, 3.6))
-    ax.plot(steps, loss, label="training loss (objective + stability penalty)" if penalised else "training loss (objective)", color="C0")
-    if len(val_steps):
-        ax.plot(val_steps, val, "o-", label="held-out objective", color="C1", ms=3)
-    if best_step is not None:
-        ax.axvline(best_step, color="k", ls=":", lw=1, label=f"kept: the parameters after {best_step} updates")
-    values = np.concatenate([np.asarray(loss, float).ravel(), np.asarray(val, float).ravel()])
-    values = values[np.isfinite(values) & (values > 0)]
-    if values.size and values.max() >= 10 * values.min():
-        ax.set_yscale("log")
-    else:
-        # a run that barely moves the objective read "1e-5+1" over the axis and ticks 0..2:
-        # the objective's own values read at once
-        ax.yaxis.get_major_formatter().set_useOffset(False)
-    ax.set_xlabel("Step")
-    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # steps are updates
-    ax.margins(x=0)  # the axis ran a step or more past the last one
-    ax.set_ylabel("Objective" if reference is None else f"Objective (the {reference[0]} gains score {reference[1]:.4g} on training)")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
-    ax.set_title(title)
+    """Training loss per step (top) and held-out objective at each validation (below, when
+    there is one), each on its own axis: the held-out scenarios score on another level (3.3
+    against 1.0 in a DFS run), and on one axis the training curve's 10 % fall read flat. Log
+    scale where a panel's finite positive values span a decade or more (over less, a log axis
+    labels one tick). ``best_step``: the step whose parameters were kept, marked by a vertical
+    line in both panels and a ring on the held-out curve. ``reference``: ``(name,
+    objective)`` of the gains that set the objective's scales ("paper" or "initial") and their
+    training objective, named on the axis (1 only for the mean of one unit weight; the CVaR,
+    the worst case and other weights score them otherwise). ``penalised``: the loss holds the
+    DFS stability penalty too (a fuzzy run's legend named one it had not)."""
+    val_steps, val = np.asarray(val_steps), np.asarray(val, float)
+    panels = 2 if len(val_steps) else 1
+    fig, axes = plt.subplots(panels, 1, figsize=(7.0, 3.6 if panels == 1 else 5.4), sharex=True, squeeze=False)
+    train_ax = axes[0, 0]
+    train_ax.plot(steps, loss, label="training loss (objective + stability penalty)" if penalised else "training loss (objective)", color="C0")
+    train_ax.set_ylabel("Training objective" if reference is None else f"Training objective\n(the {reference[0]} gains score {reference[1]:.4g})")
+    if panels == 2:
+        val_ax = axes[1, 0]
+        val_ax.plot(val_steps, val, "o-", label="held-out objective", color="C1", ms=3, clip_on=False)
+        val_ax.set_ylabel("Held-out objective")
+        if best_step is not None and np.any(val_steps == best_step):
+            val_ax.plot([best_step], val[val_steps == best_step][:1], "o", ms=9, mfc="none", mec="k", clip_on=False, label="kept")
+    for ax, values in zip(axes[:, 0], (loss, val)):
+        if best_step is not None:  # clip_on=False: at the last step it lies on the axis' edge
+            ax.axvline(best_step, color="k", ls=":", lw=1.2, clip_on=False, label=f"kept: the parameters after {best_step} updates" if ax is train_ax else None)
+        values = np.asarray(values, float).ravel()
+        values = values[np.isfinite(values) & (values > 0)]
+        if values.size and values.max() >= 10 * values.min():
+            ax.set_yscale("log")
+        else:
+            # a run that barely moves the objective read "1e-5+1" over the axis and ticks 0..2:
+            # the objective's own values read at once
+            ax.yaxis.get_major_formatter().set_useOffset(False)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    last = axes[-1, 0]
+    last.set_xlabel("Step")
+    last.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # steps are updates
+    last.margins(x=0)  # the axis ran a step or more past the last one
+    train_ax.set_title(title)
     fig.tight_layout()
     return fig
 

@@ -535,8 +535,9 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         grid = jnp.linspace(-1.0, 1.0, 41, dtype=dtype)
         fparams = fuzzy_params(1.02, 0.30, 1.0, dtype=dtype)
         surf = jax.vmap(lambda e: jax.vmap(lambda v: fuzzy_surface(fparams, e, v))(grid))(grid)
-        no_rule = "flat at 0 where none of the paper's 11 rules fires: most of the four corners, |angle| and |velocity| both over 0.5"
-        plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf), note=no_rule), os.path.join(stage, "fig4_fuzzy_surface.png"))
+        # at angle -0.8, velocity 0.8 the rule (NS, PS -> ZE) fires at 0.4: the corners are not all rule-less
+        corners = "flat at 0 in the corners (|angle|, |velocity| > 0.5): no rule fires where their signs agree; where they differ, (NS, PS) and (PS, NS) fire, to zero torque"
+        plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf), note=corners), os.path.join(stage, "fig4_fuzzy_surface.png"))
 
         if tuned is not None:
             paper_gains = f"{plotting.LABELS[tuned.name]} (paper gains)"  # the legend said "DFS" beside "tuned dfs"

@@ -283,6 +283,12 @@ def test_loss_curves_use_a_log_axis_over_a_decade_or_more(low, scale):
     assert fig.axes[0].get_yscale() == scale
     kept = [line for line in fig.axes[0].get_lines() if line.get_label().startswith("kept")]
     assert [line.get_label() for line in kept] == ["kept: the parameters after 10 updates"] and list(kept[0].get_xdata()) == [10, 10]
+    # the held-out objective on its own axis, with its own scale (on the training loss's, a
+    # 10 % fall from 1 read flat beside held-out values near 3), the kept step marked there too
+    held_out = fig.axes[1]
+    assert [line.get_label() for line in held_out.get_lines()][0] == "held-out objective" and held_out.get_yscale() == "linear"
+    assert held_out.get_ylim()[0] > 1.5 and fig.axes[0].get_ylim()[1] < 1.5
+    assert [list(line.get_xdata()) for line in held_out.get_lines()[1:]] == [[10], [10, 10]]  # the ring and the line
     plotting.plt.close(fig)
 
 
@@ -293,12 +299,12 @@ def test_loss_curves_name_the_paper_gains_objective_and_whole_steps():
 
     fig = plotting.loss_curves(np.arange(3), np.array([3.69, 3.68, 3.68]), np.array([0, 2]), np.array([4.9, 5.2]), "t", best_step=0, reference=("paper", 3.69))
     ax = fig.axes[0]
-    assert ax.get_ylabel() == "Objective (the paper gains score 3.69 on training)"
+    assert ax.get_ylabel() == "Training objective\n(the paper gains score 3.69)"
     fig.canvas.draw()
     assert all(float(tick) == int(tick) for tick in ax.get_xticks())  # no step 0.25 over 2 updates
     assert ax.get_xlim() == (0.0, 2.0)  # it ran to 2.1: past the last update
     plotting.plt.close(fig)
-    assert plotting.loss_curves(np.arange(3), np.ones(3), np.array([]), np.array([]), "t").axes[0].get_ylabel() == "Objective"
+    assert plotting.loss_curves(np.arange(3), np.ones(3), np.array([]), np.array([]), "t").axes[0].get_ylabel() == "Training objective"
     # the legend names the stability penalty only where the loss holds it (DFS alone): a fuzzy run's named one
     for penalised, label in ((False, "training loss (objective)"), (True, "training loss (objective + stability penalty)")):
         legend = plotting.loss_curves(np.arange(3), np.ones(3), np.array([]), np.array([]), "t", penalised=penalised).axes[0].get_legend()
