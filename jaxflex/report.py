@@ -540,11 +540,16 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         plotting.save(plotting.surface(np.asarray(grid), np.asarray(grid), np.asarray(surf), note=corners), os.path.join(stage, "fig4_fuzzy_surface.png"))
 
         if tuned is not None:
-            paper_gains = f"{plotting.LABELS[tuned.name]} (paper gains)"  # the legend said "DFS" beside "tuned dfs"
-            pair = {"open_loop": sig["open_loop"], paper_gains: signals(paper_traj), f"tuned {tuned.name}": signals(ttraj)}
+            # each legend entry gives its gains (the figure showed neither), and the hub angle,
+            # which a tip-only objective moves most, gets a panel
+            gains = lambda named: ", ".join(f"{key} = {value:.4g}" for key, value in named.items())
+            paper_gains = f"{plotting.LABELS[tuned.name]}, paper gains ({gains(_paper_gains(tuned.name))})"  # the legend said "DFS" beside "tuned dfs"
+            tuned_gains = f"tuned {tuned.name} ({gains(tuned.named)})"
+            with_hub = lambda tr: {**signals(tr), "hub": np.asarray(tr.z[:, 0])}
+            pair = {"open_loop": with_hub(trajectories["open_loop"]), paper_gains: with_hub(paper_traj), tuned_gains: with_hub(ttraj)}
             div[paper_gains] = tuned_results["paper_run"]["diverged"]
-            div[f"tuned {tuned.name}"] = tuned_results["run"]["diverged"]
-            figure = plotting.responses(t, pair, panels, div, f"Paper gains against tuned {tuned.name} ({os.path.basename(str(params_file))})", style_of={paper_gains: tuned.name})
+            div[tuned_gains] = tuned_results["run"]["diverged"]
+            figure = plotting.responses(t, pair, [*panels, ("hub", "Hub angle (rad)")], div, f"Paper gains against tuned {tuned.name} ({params_file})", style_of={paper_gains: tuned.name})
             plotting.save(figure, os.path.join(stage, TUNED_FIGURE))
 
         fileio.write_text(os.path.join(stage, "report.md"), _report_md(results))

@@ -979,8 +979,9 @@ def test_reproduce_with_params_simulates_the_tuned_gains(tmp_path, capsys, monke
     assert ylim6 == ylim8 and ylim6 is not None
     every = np.concatenate(curves6 + curves8)
     assert ylim6[0] < every.min() <= every.max() < ylim6[1] < 10 * every.max()
-    # the tuned figure's legend: "DFS (paper gains)" in DFS's look (it read "DFS" beside "tuned dfs")
-    assert drawn[-1] == (["open_loop", "DFS (paper gains)", "tuned dfs"], {"DFS (paper gains)": "dfs"})
+    # the tuned figure's legend: the paper gains in DFS's look (it read "DFS" beside "tuned dfs"), each with its gains
+    paper_gains = "DFS, paper gains (k = 55, tau_s = 0.005)"
+    assert drawn[-1] == (["open_loop", paper_gains, "tuned dfs (k = 55, tau_s = 0.005)"], {paper_gains: "dfs"})
     tuned_for = "another arm (length_m = 0.6), 3 modes (here 2), dt = 0.0005 s (here 0.001 s), method = 'zoh' (here 'rk4')"
     # said on the console too, not only in one sentence of report.md
     printed = capsys.readouterr()
