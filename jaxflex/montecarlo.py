@@ -469,8 +469,10 @@ def _check_resume(meta_path: str, meta: dict[str, Any], n_scenarios: int) -> Non
 
 
 def tip_bands(runner: _Runner, percentiles: Sequence[float]) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Percentiles of the tip deflection at each time over the first ``band_scenarios``
-    scenarios of chunk 0 that did not diverge (as in the histograms).
+    """Percentiles of the tip deflection's magnitude at each time over the first
+    ``band_scenarios`` scenarios of chunk 0 that did not diverge (as in the histograms).
+    The magnitude: the scenarios start and are struck with either sign, so the signed
+    deflection's median sat at 0 throughout and its bands were mirror images.
 
     Returns:
       ``(t, bands, kept, count)``: ``bands`` is ``[len(percentiles), T]`` (NaN when every run
@@ -487,7 +489,7 @@ def tip_bands(runner: _Runner, percentiles: Sequence[float]) -> tuple[np.ndarray
         return tip, run_diverged(jax.vmap(diverged)(traj.x), jnp.max(jnp.abs(tip), axis=-1), runner.beam.length_m)  # as the chunks' rows
 
     tips, bad = jax.jit(run)(batch)
-    tips = np.asarray(tips)[~np.asarray(bad)]  # [kept, T]
+    tips = np.abs(np.asarray(tips)[~np.asarray(bad)])  # [kept, T]
     t = np.arange(tips.shape[1]) * spec.dt
     bands = np.percentile(tips, list(percentiles), axis=0) if tips.shape[0] else np.full((len(percentiles), t.size), np.nan)
     return t, bands, tips.shape[0], count
@@ -504,6 +506,6 @@ def _figures(runner: _Runner, columns: dict[str, np.ndarray], out_dir: str) -> l
     plotting.save(plotting.histograms(data, labels, f"{runner.config.controller}: {int(ok.sum())} of {ok.size} runs (diverged left out)\n{arm}"), os.path.join(out_dir, FIGURES[0]))
     percentiles = sorted(set(runner.config.percentiles) | {50.0})
     t, bands, kept, count = tip_bands(runner, percentiles)
-    title = f"{runner.config.controller}: tip deflection percentiles over {kept} of {count} scenarios (diverged left out)\n{arm}"
-    plotting.save(plotting.percentile_bands(t, bands, percentiles, "Tip deflection (m)", title), os.path.join(out_dir, FIGURES[1]))
+    title = f"{runner.config.controller}: percentiles of |tip deflection| over {kept} of {count} scenarios (diverged left out)\n{arm}"
+    plotting.save(plotting.percentile_bands(t, bands, percentiles, "|Tip deflection| (m)", title), os.path.join(out_dir, FIGURES[1]))
     return list(FIGURES)
