@@ -69,7 +69,15 @@ def _check_shape(name: str, value: Any, shape: tuple[int, ...], what: str) -> No
         raise ValueError(f"{name} must have shape {shape} ({what}); got {np.shape(value)}")
 
 
-def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signals: Sequence[tuple[str, str]], diverged: Mapping[str, bool], title: str, style_of: Mapping[str, str] | None = None) -> plt.Figure:
+def responses(
+    t: np.ndarray,
+    runs: Mapping[str, Mapping[str, np.ndarray]],
+    signals: Sequence[tuple[str, str]],
+    diverged: Mapping[str, bool],
+    title: str,
+    style_of: Mapping[str, str] | None = None,
+    settling: Mapping[str, Mapping[str, float]] | None = None,
+) -> plt.Figure:
     """Time responses, one subplot per signal.
 
     A run that settles early would fill a sliver of the horizon (the paper's DFS settles in
@@ -86,6 +94,9 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
       diverged: run name -> whether the run diverged.
       title: figure title.
       style_of: run name -> the run (controller) whose line style it takes.
+      settling: run name -> signal name -> settling time (s), each marked by a dotted line
+        in the run's colour on that signal's panels and named in the legend (a report's
+        settling times could not be read off its figures).
 
     Raises:
       ValueError: for no signals, or a run that lacks one of them or holds one of another
@@ -118,6 +129,12 @@ def responses(t: np.ndarray, runs: Mapping[str, Mapping[str, np.ndarray]], signa
         if zoom:
             _response_panel(axes[row, 1], t[:n], {run: sig[name][:n] for run, sig in values.items()}, diverged, styles)
             axes[row, 1].set_xlim(float(t[0]), end)
+    for run, times in (settling or {}).items():
+        for row, (name, _) in enumerate(signals):
+            if name in times and np.isfinite(times[name]):
+                label = f"{LABELS.get(run, run)} settled ({name}, 2 % band): {times[name]:.3g} s"
+                for col in range(axes.shape[1]):
+                    axes[row, col].axvline(times[name], color=styles[run].get("color", "k"), ls=":", lw=1.2, label=label if col == 0 else None)
     if whole:
         axes[0, 0].set_xlim(float(t[0]), end)
         _settled_note(axes[-1, 0], max(quick), float(t[-1]), "every run stays within {} of its largest excursion from its final value")

@@ -527,7 +527,8 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
         for run, resp, psdfig in (("dfs", "fig5_dfs_response.png", "fig6_dfs_psd.png"), ("fuzzy", "fig7_fuzzy_response.png", "fig8_fuzzy_psd.png")):
             label = plotting.LABELS[run]
             pair = {"open_loop": sig["open_loop"], run: sig[run]}
-            plotting.save(plotting.responses(t, pair, panels, div, f"Modal displacement and tip deflection with {label}"), os.path.join(stage, resp))
+            settled = {run: {"q1": runs[run]["q1"]["settling_time_s"]}} if runs[run]["q1"]["settling_time_s"] is not None else None  # the report's table, on the figure
+            plotting.save(plotting.responses(t, pair, panels, div, f"Modal displacement and tip deflection with {label}", settling=settled), os.path.join(stage, resp))
             curves = {"open_loop": psd_curves["open_loop"], run: psd_curves[run]}
             plotting.save(plotting.psds(freqs_psd, curves, mode_freqs, "PSD of tip deflection (m^2/Hz)", f"PSD with {label} ({next(iter(ESTIMATORS))})", ylim=shared), os.path.join(stage, psdfig))
         paper_db = {run: PAPER[run]["reduction_db"] for run in ("dfs", "fuzzy")}

@@ -362,3 +362,19 @@ def test_psd_limits_hold_every_curve_up_to_the_drawn_frequency():
         plotting.psd_limits(freqs, [a, b[:500]], [13.3])
     ax = plotting.psds(freqs, {"open_loop": a, "dfs": b}, [13.3], "PSD", "t", ylim=(1e-13, 1e-7)).axes[0]
     assert ax.get_ylim() == pytest.approx((1e-13, 1e-7))
+
+
+def test_responses_mark_a_settling_time_on_its_signals_panels():
+    """fig5 and fig7 showed neither the settling time report.md gives nor where it falls: the
+    settling time is a dotted line in the run's colour on its signal's panels, named once."""
+    t = np.arange(3000) * 1e-3
+    decay = np.exp(-20 * t) * np.cos(80 * t)
+    runs = {"open_loop": {"q1": np.cos(80 * t), "tip": np.cos(80 * t)}, "dfs": {"q1": decay, "tip": 2 * decay}}
+    fig = plotting.responses(t, runs, [("q1", "q1 (m)"), ("tip", "tip (m)")], {}, "t", settling={"dfs": {"q1": 0.234}})
+    q1_lines = [line for ax in fig.axes[:2] for line in ax.get_lines() if list(line.get_xdata()) == [0.234, 0.234]]
+    assert len(q1_lines) == 2 and q1_lines[0].get_color() == plotting._STYLES["dfs"]["color"]  # both columns of the q1 row
+    assert [line.get_label() for line in q1_lines][0] == "DFS settled (q1, 2 % band): 0.234 s"
+    tip_axes = fig.axes[2:]
+    assert not [line for ax in tip_axes for line in ax.get_lines() if list(line.get_xdata()) == [0.234, 0.234]]
+    assert "DFS settled (q1, 2 % band): 0.234 s" in [text.get_text() for text in fig.axes[0].get_legend().get_texts()]
+    plotting.plt.close(fig)
