@@ -516,9 +516,12 @@ def _scenario_notes(arm, n_modes: int, spec, given: dict, config: str | None) ->
 
 def _tune(args: argparse.Namespace) -> int:
     from tuning.run import run_tune
-    from tuning.tuner import TuneConfig
+    from tuning.tuner import TuneConfig, recorded_steps
 
     values = fileio.read_toml(args.config) if args.config else {}
+    if args.resume and args.steps is None and "steps" not in values and (recorded := recorded_steps(args.out)) is not None:
+        args.steps = recorded  # the run's own target: the default 200 ended a run started for 400 halfway, with a final-looking tuned.json
+        print(f"tune: --resume: --steps {recorded}, as the run in {args.out} recorded", file=sys.stderr)
     given = {"controller": args.controller, "n_scenarios": args.scenarios, "n_heldout": args.heldout, "steps": args.steps, "seed": args.seed, "learning_rate": args.lr}
     options = {"n_scenarios": "--scenarios", "n_heldout": "--heldout", "learning_rate": "--lr"}
     with _as_typed(_sources({name: options.get(name, f"--{name}") if value is not None else None for name, value in given.items()}, values, args.config)):

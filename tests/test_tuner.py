@@ -24,7 +24,7 @@ from jaxflex.analysis import stability
 from tuning import objectives
 from tuning.objectives import ObjectiveSpec
 from tuning.run import FIGURES
-from tuning.tuner import CHECKPOINT, Problem, TuneConfig, summarize, tune
+from tuning.tuner import CHECKPOINT, Problem, TuneConfig, recorded_steps, summarize, tune
 
 RTOL_FD = 1e-5  # central differences, float64
 
@@ -323,6 +323,7 @@ def test_resume_after_interrupt_equals_uninterrupted(tmp_path, tuned, monkeypatc
         tune(cfg, tmp_path / "cut", progress=False, on_step=interrupt)
     with np.load(tmp_path / "cut" / CHECKPOINT) as data:
         assert json.loads(bytes(data["meta"]).decode())["step"] == 4  # lost at most one interval
+    assert recorded_steps(tmp_path / "cut") == 30 and recorded_steps(tmp_path / "empty") is None  # the target a bare --resume goes on to
     with pytest.raises(ValueError, match=r"pass --resume \(resume=True\) to continue it, choose another --out \(out_dir\), or delete the folder to start over in it"):
         tune(cfg, tmp_path / "cut", progress=False)  # never overwrite a run silently
     # saved more often after the interruption: when a run is saved is not what it computes
@@ -563,7 +564,8 @@ def test_bad_input_is_refused(tmp_path):
         sample_scenarios(ScenarioSpec(), jax.random.key(0), 0)
     # an objective that becomes NaN/inf stops with a clear message and keeps the last checkpoint
     cfg = TuneConfig(controller="dfs", steps=10, checkpoint_every=1, learning_rate=50.0, clip_norm=1e6, **SHARED)
-    with pytest.raises(ValueError, match="the objective became .* at step .*: lower learning_rate"):
+    # the advice says where to start again: a --resume keeps the run's learning rate and meets the same NaN
+    with pytest.raises(ValueError, match=rf"the objective became .* at step .*: start again with a lower learning_rate \(--lr\) or clip_norm \(a config key\), or check the scenarios, in another --out or after deleting {tmp_path}"):
         tune(cfg, tmp_path, progress=False)
     assert (tmp_path / CHECKPOINT).exists()
     # NaN where the run starts: no update was taken, so the learning rate is not blamed
@@ -1102,3 +1104,36 @@ def test_a_run_resumed_after_its_last_update_ends_its_log_at_100_percent(tmp_pat
     err = capsys.readouterr().err
     assert re.search(r"\ntune: 2 of 2 updates \(100 %\) after \d+ s; loss (\S+), best held-out", err) and "3 of 2" not in err, err
     assert state["history"][-1]["step"] == 2
+
+
+def test_a_bare_cli_resume_goes_on_to_the_runs_own_steps_and_a_new_run_keeps_an_earlier_result(tmp_path, capsys, monkeypatch):
+    """`tune --resume` without --steps went on to the default 200 of a run started for 400 and
+    wrote a final-looking tuned.json; a new run into a folder holding an earlier tuned.json
+    (no checkpoint) removed it and its figures at its start, so that one stopped then lost them."""
+    import tuning.run
+    from jaxflex import cli
+
+    cfg = TuneConfig(controller="dfs", steps=7, checkpoint_every=1, **{**SHARED, "n_scenarios": 4, "n_heldout": 2, "scenarios": ScenarioSpec(horizon_s=0.05)})
+
+    def interrupt(step):
+        if step == 2:
+            raise KeyboardInterrupt
+
+    config = tmp_path / "c.toml"
+    config.write_text("[scenarios]\nhorizon_s = 0.05\n")
+    with pytest.raises(KeyboardInterrupt):
+        tune(cfg, tmp_path / "run", progress=False, on_step=interrupt)
+    asked = []
+    monkeypatch.setattr(tuning.run, "run_tune", lambda config, *a, **k: asked.append(config.steps) or (_ for _ in ()).throw(KeyboardInterrupt))
+    args = ["tune", "--config", str(config), "--scenarios", "4", "--heldout", "2", "--out", str(tmp_path / "run"), "--resume", "--no-progress"]
+    assert cli.main(args) == 130 and asked == [7]
+    assert f"tune: --resume: --steps 7, as the run in {tmp_path / 'run'} recorded" in capsys.readouterr().err
+    assert cli.main([*args, "--steps", "9"]) == 130 and asked[-1] == 9  # an explicit --steps extends it
+    monkeypatch.undo()
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    (earlier / "tuned.json").write_text("{}")
+    (earlier / "loss.png").write_bytes(b"png")
+    with pytest.raises(ValueError, match=rf"{earlier} holds the tuned.json of an earlier run: choose another --out \(out_dir\), or remove that tuned.json"):
+        tuning.run.run_tune(cfg, earlier, progress=False)
+    assert sorted(p.name for p in earlier.iterdir() if not p.name.startswith(".")) == ["loss.png", "tuned.json"]

@@ -14,7 +14,7 @@ from jaxflex import beam, checks, fileio, plotting
 from jaxflex.analysis import welch
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import scenario_modes_hz, scenario_plant
-from tuning.tuner import Problem, TuneConfig, summarize, tune
+from tuning.tuner import CHECKPOINT, Problem, TuneConfig, summarize, tune
 
 N_SHOWN_HELDOUT = 3
 FIGURES = ("loss.png", *(f"{kind}_{idx}.png" for kind in ("response", "psd") for idx in range(N_SHOWN_HELDOUT + 1)))
@@ -84,6 +84,9 @@ def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = F
                 os.remove(os.path.join(out_dir, name))
 
     with fileio.run_lock(out_dir, "out_dir (--out)"):  # tune's, held on to the figures and tuned.json
+        if not resume and os.path.exists(os.path.join(out_dir, "tuned.json")) and not os.path.exists(os.path.join(out_dir, CHECKPOINT)):
+            # a new run removes the folder's tuned.json and figures at its start (they would not be its own); one stopped then had lost them
+            raise ValueError(f"{out_dir} holds the tuned.json of an earlier run: choose another --out (out_dir), or remove that tuned.json to start over in this folder (the new run replaces its figures)")
         state = tune(config, out_dir, resume=resume, progress=progress, on_step=on_step, on_start=discard_previous_result)
         print("tune: evaluating the tuned gains and drawing figures", file=sys.stderr, flush=True)  # with or without the bar
         summary = summarize(state)

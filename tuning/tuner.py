@@ -313,6 +313,19 @@ def _save_checkpoint(path: str, state: dict[str, Any]) -> None:
     fileio.atomic_write(path, write)
 
 
+def recorded_steps(out_dir: str | os.PathLike) -> int | None:
+    """The number of updates the run in ``out_dir`` was asked for (its checkpoint's record);
+    None without a readable checkpoint, or one written before jaxflex recorded it.
+    ``jaxflex tune --resume`` goes on to it unless ``--steps`` (or the config) says otherwise:
+    it went on to the default 200 of a run started for 400, and wrote a final-looking result."""
+    path = os.path.join(fileio.check_path("out_dir", out_dir, "folder"), CHECKPOINT)
+    try:
+        steps = _load_checkpoint(path).get("steps")
+    except ValueError:  # missing or damaged: the resume itself names it
+        return None
+    return steps if isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1 else None
+
+
 def _load_checkpoint(path: str, template: tuple[Any, Any, Any] | None = None) -> dict[str, Any]:
     """The checkpoint's metadata and, given a ``template`` (raw, opt_state, best_raw), its arrays.
 
@@ -463,6 +476,7 @@ def _tune_locked(
             "fingerprint": fingerprint,
             "config": config.fingerprint_fields(),
         }
+    state["steps"] = config.steps  # the target, which the fingerprint leaves out: a bare --resume goes on to it (recorded_steps)
 
     # which device count took which steps: a run resumed on another count goes on within
     # rounding, not bit for bit (a checkpoint of an older jaxflex starts at its resume step)
@@ -500,7 +514,9 @@ def _tune_locked(
                     kept = f"the last checkpoint in {out_dir} is kept" if os.path.exists(ckpt_path) else f"no checkpoint was written yet (every {config.checkpoint_every} steps)"
                     if n == 0:  # no update has been taken: the learning rate is not the cause
                         raise ValueError(f"{what} at the starting parameters, before any update: check [initial], [objective] and [scenarios]; {kept}")
-                    raise ValueError(f"{what} at step {n + 1}: lower learning_rate (--lr) or clip_norm (a config key), or check the scenarios; {kept}")
+                    # a resume keeps the run's learning rate and would meet the same NaN: the advice was to lower it, and the folder then refused both
+                    raise ValueError(f"{what} at step {n + 1}: start again with a lower learning_rate (--lr) or clip_norm (a config key), or check the scenarios, "
+                                     f"in another --out or after deleting {out_dir} (a --resume keeps the run's learning rate and meets the same NaN); {kept}")
                 if n == 0 and grad_norm == 0.0:  # no update could ever move them
                     spec = config.scenarios
                     raise ValueError(f"the objective's gradient is exactly zero at the starting parameters, so no update can move them: over the "
