@@ -1137,3 +1137,34 @@ def test_a_bare_cli_resume_goes_on_to_the_runs_own_steps_and_a_new_run_keeps_an_
     with pytest.raises(ValueError, match=rf"{earlier} holds the tuned.json of an earlier run: choose another --out \(out_dir\), or remove that tuned.json"):
         tuning.run.run_tune(cfg, earlier, progress=False)
     assert sorted(p.name for p in earlier.iterdir() if not p.name.startswith(".")) == ["loss.png", "tuned.json"]
+
+
+def test_the_same_starting_point_written_otherwise_has_the_same_fingerprint():
+    """[initial] k = 55 edited to k = 55.0, or the paper's values written out, refused a resume
+    with "the configuration changed", naming nothing: the fingerprint holds the starting point."""
+    base = TuneConfig(controller="dfs", **SHARED)
+    for initial in ({"k": 55}, {"k": 55.0}, {"k": 55.0, "tau_s": 0.005}):
+        assert dataclasses.replace(base, initial=initial).fingerprint() == base.fingerprint(), initial
+    assert dataclasses.replace(base, initial={"k": 56.0}).fingerprint() != base.fingerprint()
+    assert dataclasses.replace(base, initial={"k": 55}).to_dict()["initial"] == {"k": 55}  # tuned.json keeps what was given
+
+
+def test_a_full_disk_names_where_and_that_the_run_resumes(tmp_path, capsys, monkeypatch):
+    """A full disk printed only "[Errno 28] No space left on device": no folder, and no word
+    that the checkpoint is kept and --resume goes on once there is space."""
+    import errno
+
+    import tuning.run
+    from jaxflex import cli
+
+    out = tmp_path / "run"
+
+    def full(config, out_dir, **kwargs):
+        os.makedirs(out_dir, exist_ok=True)
+        (out / CHECKPOINT).write_bytes(b"")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(tuning.run, "run_tune", full)
+    assert cli.main(["tune", "--out", str(out), "--no-progress"]) == 2
+    said = capsys.readouterr().err.strip().splitlines()[-1]
+    assert said == f"jaxflex tune: error: cannot write into {out}: {os.strerror(errno.ENOSPC)}; what was written is kept: free space, then the same command with --resume continues from the last checkpoint"

@@ -155,8 +155,11 @@ class TuneConfig:
         """What a resumed run must share with the checkpoint: everything but ``steps`` (more
         steps may be asked of a resumed run) and ``checkpoint_every`` (which changes when
         the run is saved, not what it computes), and the dtype and the program
-        (``fileio.program``), as plain JSON values."""
+        (``fileio.program``), as plain JSON values. ``initial`` is the starting point itself,
+        every parameter as a float (the paper's where not given): ``k = 55`` edited to
+        ``k = 55.0``, or the paper's values written out, refused a resume of the same run."""
         d = self.to_dict()
+        d["initial"] = {name: value for name, value in param_values(self.initial, "initial").items() if name in PARAMETERS[self.controller]}
         d.pop("steps")
         d.pop("checkpoint_every")
         d["dtype"] = str(jnp.zeros(()).dtype)
