@@ -1168,3 +1168,27 @@ def test_a_full_disk_names_where_and_that_the_run_resumes(tmp_path, capsys, monk
     assert cli.main(["tune", "--out", str(out), "--no-progress"]) == 2
     said = capsys.readouterr().err.strip().splitlines()[-1]
     assert said == f"jaxflex tune: error: cannot write into {out}: {os.strerror(errno.ENOSPC)}; what was written is kept: free space, then the same command with --resume continues from the last checkpoint"
+
+
+def test_a_log_file_gets_lines_not_a_progress_bar(tmp_path, monkeypatch):
+    """tune's bar, written to a log file, left two redraws per step there (22 KB for 200 steps):
+    off a terminal the commands write --no-progress's lines."""
+    import io
+
+    import tuning.run
+    from jaxflex import cli, montecarlo
+
+    asked = []
+    monkeypatch.setattr(tuning.run, "run_tune", lambda *a, progress, **k: asked.append(progress) or (_ for _ in ()).throw(KeyboardInterrupt))
+    monkeypatch.setattr(montecarlo, "run_montecarlo", lambda *a, progress, **k: asked.append(progress) or (_ for _ in ()).throw(KeyboardInterrupt))
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    for stream, expected in ((io.StringIO(), False), (Terminal(), True)):
+        monkeypatch.setattr(sys, "stderr", stream)
+        for command in ("tune", "montecarlo"):
+            assert cli.main([command, "--out", str(tmp_path / command)]) == 130
+            assert cli.main([command, "--out", str(tmp_path / command), "--no-progress"]) == 130
+            assert asked[-2:] == [expected, False], (command, expected)
