@@ -637,11 +637,11 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values.setdefault("method", tuned.method)
     recorded = recorded_settings(args.out) if args.resume else {}
     if args.resume:  # what neither the options nor the config set: the folder's
-        option = {"n_scenarios": "scenarios", "chunk": "chunk", "unroll": "unroll"}  # each key's argument
+        option = {"n_scenarios": "scenarios", "chunk": "chunk", "unroll": "unroll", "controller": "controller", "seed": "seed"}  # each key's argument
         taken = {key: value for key, value in recorded.items() if key not in values and getattr(args, option[key]) is None}
         values.update(taken)
-        if taken:
-            said = [f"--{option[key]} {value}" for key, value in taken.items()]
+        defaults = {f.name: f.default for f in dataclasses.fields(MCConfig)}
+        if said := [f"--{option[key]} {value}" for key, value in taken.items() if value != defaults.get(key)]:  # "--unroll 1, as recorded" was every resume's
             print(f"montecarlo: --resume: {', '.join(said[:-1]) + ' and ' if len(said) > 1 else ''}{said[-1]}, as the run in {args.out} recorded", file=sys.stderr)
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed, "unroll": args.unroll}
     values.update({k: v for k, v in overrides.items() if v is not None})

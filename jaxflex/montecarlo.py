@@ -434,11 +434,13 @@ def _read_meta(meta_path: str) -> Any:
         raise ValueError(f"--resume: cannot read {meta_path} ({err}); start a new run in another --out") from None
 
 
-def recorded_settings(out_dir: str | os.PathLike) -> dict[str, int]:
-    """The ``n_scenarios``, ``chunk`` and ``unroll`` that the run in ``out_dir`` recorded, those
-    it holds (none when it has no readable record, which ``run_montecarlo`` names; no
-    ``n_scenarios`` in a folder written before it was recorded): ``jaxflex montecarlo --resume``
-    runs at them unless told otherwise. A resume with another ``n_scenarios`` records that."""
+def recorded_settings(out_dir: str | os.PathLike) -> dict[str, Any]:
+    """The ``n_scenarios``, ``chunk``, ``unroll``, ``controller`` and ``seed`` that the run in
+    ``out_dir`` recorded, those it holds (none when it has no readable record, which
+    ``run_montecarlo`` names; no ``n_scenarios`` in a folder written before it was recorded):
+    ``jaxflex montecarlo --resume`` runs at them unless told otherwise (it took the first three
+    and then refused the default controller and seed as "changed"). A resume with another
+    ``n_scenarios`` records that."""
     out_dir = fileio.check_path("out_dir", out_dir, "folder")
     try:
         previous = _read_meta(os.path.join(out_dir, META))
@@ -446,8 +448,12 @@ def recorded_settings(out_dir: str | os.PathLike) -> dict[str, int]:
         return {}
     config = previous.get("config") if isinstance(previous, dict) else None
     record = previous if isinstance(previous, dict) else {}
-    found = {"n_scenarios": record.get("n_scenarios"), "chunk": record.get("chunk"), "unroll": config.get("unroll") if isinstance(config, dict) else None}
-    return {key: value for key, value in found.items() if isinstance(value, int) and not isinstance(value, bool)}
+    config = config if isinstance(config, dict) else {}
+    found = {"n_scenarios": record.get("n_scenarios"), "chunk": record.get("chunk"), "unroll": config.get("unroll"), "seed": config.get("seed")}
+    taken: dict[str, Any] = {key: value for key, value in found.items() if isinstance(value, int) and not isinstance(value, bool)}
+    if config.get("controller") in CONTROLLERS:
+        taken["controller"] = config["controller"]
+    return taken
 
 
 def _check_resume(meta_path: str, meta: dict[str, Any], n_scenarios: int) -> None:

@@ -433,6 +433,10 @@ def test_cli_says_how_many_runs_did_not_settle(tmp_path, capsys):
     assert json.loads((tmp_path / "o" / montecarlo.META).read_text())["n_scenarios"] == 3
     assert cli.main(["montecarlo", "--controller", "open_loop", "--config", str(config), "--scenarios", "5", "--out", str(tmp_path / "o"), "--no-progress", "--resume", "--unroll", "1"]) == 2
     assert "changed: unroll: 2 -> 1" in capsys.readouterr().err  # one given is compared, not replaced
+    # nor --controller or --seed: the folder's (it took the counts, then refused the default
+    # controller as "changed"); a value equal to the default is taken without a word
+    assert cli.main(["montecarlo", "--config", str(config), "--scenarios", "3", "--out", str(tmp_path / "o"), "--no-progress", "--resume"]) == 0
+    assert f"montecarlo: --resume: --chunk 3, --unroll 2 and --controller open_loop, as the run in {tmp_path / 'o'} recorded\n" in capsys.readouterr().err
 
 
 def test_cli_params_run_the_controller_as_tuned(tmp_path, capsys):
