@@ -229,10 +229,12 @@ def check_rk4_step(plant: LinearPlant, dt: float) -> None:
     """
     fastest = rk4_amplified_omega(plant, dt)
     if fastest is not None:
+        n_modes = plant.A.shape[0] // 2 - 1  # n_x = 2 (n + 1)
         raise ValueError(
             f"method = 'rk4' with dt = {float(dt):g} s is unstable for this arm: its mode at {fastest / (2 * np.pi):.4g} Hz has "
             f"omega dt = {fastest * float(dt):.3g} (RK4 holds up to about 2.8). Use method = 'zoh' (exact for any dt) or dt <= {2.8 / fastest:.3g} s, "
-            "once the arm and dt are what you meant: a unit slip (a thickness in mm, dt in ms) gives this too"
+            f"once the arm, dt and the {n_modes} mode{'s' * (n_modes != 1)} are what you meant: a unit slip (a thickness in mm, dt in ms) "
+            "gives this too, and so do more modes than the sample time holds (each adds a faster one)"
         )
 
 
