@@ -83,7 +83,7 @@ def number(name: str, value: Any, low: float = 0.0, *, strict: bool = False, uni
 def instance(name: str, value: Any, expected: type | tuple[type, ...], build: str) -> Any:
     """``value`` when it is an ``expected`` (a type, or a tuple of accepted types); else
     ``ValueError`` naming ``name``, the expected type(s), how to get one (``build``, e.g.
-    ``"build one with plant.discretize(...)"``) and what was given (an uncalled function by
+    ``"build one with jaxflex.discretize(plant, dt, method)"``) and what was given (an uncalled function by
     its name)."""
     if not isinstance(value, expected):
         what = type(value).__name__

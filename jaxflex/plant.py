@@ -91,7 +91,7 @@ def check_continuous(plant: LinearPlant, name: str = "plant") -> LinearPlant:
 
 def check_sampled(plant: DiscretePlant, name: str = "plant") -> DiscretePlant:
     """``plant`` when it is a sampled DiscretePlant; else ValueError naming ``name``."""
-    return checks.instance(name, plant, DiscretePlant, "build one with plant.discretize(...)")
+    return checks.instance(name, plant, DiscretePlant, "build one with jaxflex.discretize(plant, dt, method)")
 
 
 def check_plant(plant: LinearPlant | DiscretePlant, name: str = "plant") -> LinearPlant | DiscretePlant:

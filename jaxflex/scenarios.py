@@ -85,7 +85,24 @@ def scenario_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str
 def batch_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str, batch: Scenario, nominal: DiscretePlant) -> DiscretePlant:
     """The plant a batch of scenarios runs on in one ``rollout``: ``nominal`` (built from
     ``params``, shared by the batch) when the batch has no plant uncertainty, else one
-    ``scenario_plant`` per scenario (every field with a leading batch axis)."""
+    ``scenario_plant`` per scenario (every field with a leading batch axis).
+
+    The drawn plants are not checked against ``method`` (they may be traced): with "rk4",
+    call ``check_plants(spec, params, n_modes, method)`` once on the scenarios' spec, as
+    tune and montecarlo do, or RK4's own growth on a stiffer drawn arm is counted as the
+    controller diverging.
+
+    Raises:
+      ValueError: for a concrete ``dt`` other than the nominal plant's (a 2 ms batch drawn
+        beside a 1 ms ``nominal`` ran on either, by whether it held perturbations).
+    """
+    if is_concrete(dt) and is_concrete(nominal.dt) and np.ndim(dt) == 0 == np.ndim(nominal.dt):
+        try:
+            given, built = float(dt), float(nominal.dt)
+        except (TypeError, ValueError):  # a dt that is no number: discretize names it
+            given = built = None
+        if given is not None and not np.isclose(given, built, rtol=1e-6, atol=0.0):  # rtol: a float32 plant's 1e-3 is 1.00000005e-3
+            raise ValueError(f"dt = {given:g} s must be the nominal plant's sample time, {built:g} s: build both at one dt")
     if check_scenario(batch).plant is None:
         return nominal
     return jax.vmap(lambda scenario: scenario_plant(params, n_modes, dt, method, scenario))(batch)

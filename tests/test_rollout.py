@@ -499,7 +499,7 @@ def test_api_mix_ups_are_refused_by_name(plant2):
 
     sc = paper_scenario(plant2, horizon_s=0.01)
     continuous = jf.make_plant(jf.BeamParams(), 2)
-    with pytest.raises(ValueError, match=r"plant must be a DiscretePlant \(build one with plant.discretize\(...\)\); got LinearPlant"):
+    with pytest.raises(ValueError, match=r"plant must be a DiscretePlant \(build one with jaxflex.discretize\(plant, dt, method\)\); got LinearPlant"):
         jf.rollout(continuous, open_loop(), OpenLoopParams(), sc)
     for factory in (dfs, fuzzy):
         with pytest.raises(ValueError, match=rf"controller must be a Controller \(build one with dfs\(...\), .*\); got the function {factory.__name__} itself: call it"):

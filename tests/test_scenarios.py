@@ -11,8 +11,8 @@ import pytest
 
 from jaxflex.beam import BeamParams
 from jaxflex.montecarlo import MCConfig
-from jaxflex.plant import check_rk4_step, make_plant
-from jaxflex.scenarios import PlantPerturbation, ScenarioSpec, _paper_x0, check_plants, initial_condition, pad_batch, perturbed_params, sample_scenarios
+from jaxflex.plant import check_rk4_step, discretize, make_plant
+from jaxflex.scenarios import PlantPerturbation, ScenarioSpec, _paper_x0, batch_plant, check_plants, initial_condition, pad_batch, perturbed_params, sample_scenarios
 from tuning.tuner import TuneConfig
 
 N = 4000
@@ -378,3 +378,14 @@ def test_a_key_draws_the_same_scenarios_in_float32_and_float64():
     for a, b in zip(jax.tree.leaves(narrow), jax.tree.leaves(wide)):
         assert a.dtype == np.float32 and b.dtype == np.float64
         np.testing.assert_array_equal(a, b.astype(np.float32))
+
+
+def test_batch_plant_refuses_a_sample_time_other_than_the_nominal_plants():
+    """A 2 ms batch beside a 1 ms nominal plant ran at 2 ms when it held perturbations and at
+    1 ms when it did not, without a word."""
+    arm = BeamParams()
+    nominal = discretize(make_plant(arm, 2), 1e-3, "zoh")
+    batch = sample_scenarios(ScenarioSpec(horizon_s=0.01, youngs_modulus_rel=0.1), jax.random.key(0), 2)
+    with pytest.raises(ValueError, match=r"dt = 0.002 s must be the nominal plant's sample time, 0.001 s: build both at one dt"):
+        batch_plant(arm, 2, 2e-3, "zoh", batch, nominal)
+    assert batch_plant(arm, 2, 1e-3, "zoh", batch, nominal).Ad.shape == (2, 6, 6)

@@ -254,7 +254,7 @@ def test_pade_matrix_reproduces_the_rollout_and_deflates_the_structural_eigenval
 def test_pade_and_cubic_matrices_refuse_bad_input(plant):
     dplant = discretize(plant, 1e-3, "rk4")
     for call, said in (
-        (lambda: st.pade_loop_matrix(plant, 55.0, 0.005, 2), r"plant must be a DiscretePlant \(build one with plant.discretize"),
+        (lambda: st.pade_loop_matrix(plant, 55.0, 0.005, 2), r"plant must be a DiscretePlant \(build one with jaxflex.discretize"),
         (lambda: st.deflated_pade_loop_matrix(plant, 55.0, 0.005, 2), r"plant must be a DiscretePlant"),
         (lambda: st.deflated_pade_loop_matrix(dplant, float("nan"), 0.005, 2), r"k must be finite; got nan"),
         (lambda: st.pade_loop_matrix(dplant, 55.0, 0.0, 2), r"tau_s must be a finite delay > 0 \(s\); got 0.0"),
@@ -520,7 +520,7 @@ def test_each_analysis_refuses_the_other_kind_of_plant(plant):
         with pytest.raises(ValueError, match=r"plant must be a LinearPlant .*; got the function make_plant itself: call it to build one"):
             call(make_plant)
     for call in sampled:
-        with pytest.raises(ValueError, match=r"plant must be a DiscretePlant \(build one with plant.discretize\(...\)\); got LinearPlant"):
+        with pytest.raises(ValueError, match=r"plant must be a DiscretePlant \(build one with jaxflex.discretize\(plant, dt, method\)\); got LinearPlant"):
             call(plant)
     for call in (st.loop_vectors, st.structural_directions, paper_scenario):
         with pytest.raises(ValueError, match=r"plant must be a LinearPlant or DiscretePlant \(build one with make_plant\(...\), and sample it with discretize\(...\) if needed\); got dict"):
