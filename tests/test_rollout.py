@@ -751,3 +751,20 @@ def test_a_bad_unroll_is_refused_by_name(plant2, unroll):
     """65 and up too: 10^5 never finished compiling (montecarlo's cap, now rollout's)."""
     with pytest.raises(ValueError, match=rf"unroll must be an integer in \[1, 64\]; got {re.escape(repr(unroll))}"):
         jf.rollout(plant2, open_loop(), OpenLoopParams(), paper_scenario(plant2, horizon_s=0.01), unroll=unroll)
+
+
+def test_a_users_controller_is_told_what_its_step_returned_wrong(plant2):
+    """A state that changes shape failed in lax.scan naming carry[1]; an int torque ran with a
+    gradient of 0; a scalar torque of a one-scenario controller on a batch was told to be
+    (1, B), which rollout builds itself by mapping it."""
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    growing = Controller(lambda p, y0: jnp.zeros((1,), y0.dtype), lambda p, s, y: (jnp.concatenate([s, s]), -s[:1]), lambda p: None)
+    with pytest.raises(ValueError, match=re.escape("the controller's step must return a state of the shapes and dtypes it was given (the loop carries it): float64[1] became float64[2]")):
+        jf.rollout(plant2, growing, None, sc)
+    counting = Controller(lambda p, y0: (), lambda p, s, y: (s, jnp.zeros((1,), jnp.int32)), lambda p: None)
+    with pytest.raises(ValueError, match=r"the controller's step must return the torque u as floats, in the plant's dtype float64; got int32"):
+        jf.rollout(plant2, counting, None, sc)
+    scalar = Controller(lambda p, y0: (), lambda p, s, y: (s, -y[0]), lambda p: None)
+    batch = sc._replace(x0=jnp.stack([sc.x0, 2 * sc.x0]))
+    with pytest.raises(ValueError, match=re.escape("must return the torque u with shape (1,) for one scenario (N*m; rollout maps it over the batch of 2); got shape () per scenario")):
+        jf.rollout(plant2, scalar, None, batch)
