@@ -974,6 +974,7 @@ def test_tuning_sharded_over_devices_equals_one_device(tmp_path):
     mixed = json.loads((tmp_path / "d2" / "tuned.json").read_text())
     assert mixed["steps_run"] == 4 and mixed["devices"] == 1
     assert mixed["devices_from_step"] == [{"from_step": 0, "devices": 2}, {"from_step": 3, "devices": 1}]
+    assert "tune: note: the run took steps on 2 device(s) and goes on on 1: its result matches an uninterrupted run's within rounding" in out.stderr  # said, not only recorded
 
 
 def test_initial_gains_may_set_the_scales_where_the_papers_cannot_run(tmp_path):

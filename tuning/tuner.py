@@ -486,6 +486,9 @@ def _tune_locked(
     devices = 1 if problem.mesh is None else problem.mesh.size
     segments = state.setdefault("devices_from_step", [])
     if not segments or segments[-1]["devices"] != devices:
+        if segments:  # said, not only recorded in tuned.json
+            print(f"tune: note: the run took steps on {segments[-1]['devices']} device(s) and goes on on {devices}: its result matches an uninterrupted run's "
+                  "within rounding, not bit for bit (a batch sum splits otherwise)", file=sys.stderr, flush=True)
         segments.append({"from_step": state["step"], "devices": devices})
     bar = None
     heartbeat = None if progress else Heartbeat("tune", "updates", config.steps, state["step"])  # a line every 30 s for a log
