@@ -296,7 +296,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # A config's unknown keys name its file, as range refusals do (_sources): only a
         # config's tables are checked for unknown keys (tuned.json's refusals name it already).
         message = err.located(config) if config and isinstance(err, fileio.UnknownKeys) else str(err)
-        if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):  # a full disk said only "[Errno 28] No space left on device"
+        if isinstance(err, OSError) and err.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)) and (err.filename or out):  # a full disk said only "[Errno 28] No space left on device"
             message = f"cannot write {err.filename or f'into {out}'}: {err.strerror}"
             if args.command in _RESUME_HINT and out and os.path.exists(os.path.join(out, _resume_marker(args.command))):
                 message += f"; what was written is kept: free space, then{_RESUME_HINT[args.command][1:]}"

@@ -229,7 +229,7 @@ def check_rk4_step(plant: LinearPlant, dt: float) -> None:
     """
     fastest = rk4_amplified_omega(plant, dt)
     if fastest is not None:
-        n_modes = plant.A.shape[0] // 2 - 1  # n_x = 2 (n + 1)
+        n_modes = n_modes_of(plant)
         raise ValueError(
             f"method = 'rk4' with dt = {float(dt):g} s is unstable for this arm: its mode at {fastest / (2 * np.pi):.4g} Hz has "
             f"omega dt = {fastest * float(dt):.3g} (RK4 holds up to about 2.8). Use method = 'zoh' (exact for any dt) or dt <= {2.8 / fastest:.3g} s, "

@@ -94,13 +94,15 @@ def responses(
       diverged: run name -> whether the run diverged.
       title: figure title.
       style_of: run name -> the run (controller) whose line style it takes.
-      settling: run name -> signal name -> settling time (s), each marked by a dotted line
-        in the run's colour on that signal's panels and named in the legend (a report's
-        settling times could not be read off its figures).
+      settling: run name -> signal name -> settling time (s; 2 % band, as
+        ``analysis.settling_time``'s default), each marked by a dotted line in the run's
+        colour on that signal's panels and named in the legend (a report's settling times
+        could not be read off its figures); a time that is not finite is not drawn.
 
     Raises:
       ValueError: for no signals, or a run that lacks one of them or holds one of another
-        shape than ``t`` (naming both).
+        shape than ``t`` (naming both); a ``settling`` entry of a run or signal not drawn,
+        or a time that is not a number >= 0.
     """
     if not signals:
         raise ValueError("signals must name at least one (signal, y-axis label) pair")
@@ -108,6 +110,13 @@ def responses(
         missing = [name for name, _ in signals if name not in sig]
         if missing:
             raise ValueError(f"runs[{run!r}] lacks signal(s) {missing}; it has {sorted(sig)}")
+    names = [name for name, _ in signals]
+    for run, times in (settling or {}).items():
+        if run not in runs or not isinstance(times, Mapping) or set(times) - set(names):
+            raise ValueError(f"settling[{run!r}] must map some of the signals drawn, {names}, of a run drawn, {list(runs)}, to a time; got {times!r}")
+        for name, time in times.items():
+            if isinstance(time, bool) or not isinstance(time, (int, float, np.floating, np.integer)) or time < 0:
+                raise ValueError(f"settling[{run!r}][{name!r}] must be a settling time in s, >= 0; got {time!r}")
     t = np.asarray(t, dtype=float)
     for run, sig in runs.items():
         for name, _ in signals:

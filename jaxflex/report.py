@@ -185,9 +185,9 @@ def _report_md(results: dict[str, Any]) -> str:
             vals = " | ".join(format_value(results["vibration_reduction_db_by_estimator"][name][run][m], ".1f") for name in names)
             q1 = format_value(results["vibration_reduction_db_q1"][run][m], ".1f")
             paper = PAPER[run]["reduction_db"][m] if m < len(PAPER[run]["reduction_db"]) else "-"
-            f_at = region[run]["closed_loop_highest_hz"][m]
-            where = f"a peak at {f_at:.1f} Hz" if region[run]["is_peak"][m] else f"at {f_at:.1f} Hz, a skirt"
-            least = format_value(region[run]["db"][m], ".1f") + (f" ({where})" if f_at is not None else "")
+            f_at = region[run]["closed_loop_highest_hz"][m]  # None for a diverged run
+            where = "" if f_at is None else f" (a peak at {f_at:.1f} Hz)" if region[run]["is_peak"][m] else f" (at {f_at:.1f} Hz, a skirt)"
+            least = format_value(region[run]["db"][m], ".1f") + where
             lines.append(f"| {plotting.LABELS[run]} | {m + 1} | {paper} | {vals} | {q1} | {least} |")
     # the paper compares its two modes; a third model mode is shown but not compared
     n_compared = len(PAPER["dfs"]["reduction_db"])
@@ -206,7 +206,7 @@ def _report_md(results: dict[str, Any]) -> str:
         f"DFS is ahead, by estimator: {'; '.join(by_estimator)}.",
     ]
     frequencies = results["model"]["natural_frequencies_hz"]
-    moved = [f"{plotting.LABELS[run]} moves mode {m + 1}'s resonance from {f:.2f} to {f_at:.1f} Hz, where it is {db:.1f} dB below the open-loop peak "
+    moved = [f"{plotting.LABELS[run]} moves mode {m + 1}'s resonance from {f:.2f} to {f_at:.1f} Hz, where it is {abs(db):.1f} dB {'below' if db >= 0 else 'above'} the open-loop peak "
              f"(the open-loop peak's bin gives {results['vibration_reduction_db'][run][m]:.1f} dB)"
              for run in ("dfs", "fuzzy") for m, (f, f_at, db, peak) in enumerate(zip(frequencies, region[run]["closed_loop_highest_hz"], region[run]["db"], region[run]["is_peak"]))
              if peak and abs(f_at - f) > REL_BAND * f]

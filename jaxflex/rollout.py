@@ -309,8 +309,7 @@ def rollout(
     force = last(scenario.force) if scenario.force.ndim == 3 else scenario.force
     noise = last(scenario.noise) if scenario.noise.ndim == 3 else scenario.noise
     y0 = jnp.stack([y_i + noise[0][i] for i, y_i in enumerate(_matvec(C, x0))])
-    state0 = init(params, y0)
-    state1, u0 = step(params, state0, y0)
+    state1, u0 = step(params, init(params, y0), y0)
     if jnp.shape(u0) != (1,) + batch:
         if batch and not controller.batched:  # it runs under vmap: the scalar it returned came out as (B,)
             raise ValueError(f"the controller's step must return the torque u with shape (1,) for one scenario (N*m; rollout maps it over the batch of {batch[0]}); "
@@ -318,10 +317,12 @@ def rollout(
         raise ValueError(f"the controller's step must return the torque u with shape {(1,) + batch} (N*m{', a trailing batch axis when batched' if batch else ''}); got shape {jnp.shape(u0)}")
     if not jnp.issubdtype(jnp.result_type(u0), jnp.floating):  # an int torque ran, with a gradient of 0
         raise ValueError(f"the controller's step must return the torque u as floats, in the plant's dtype {y0.dtype}; got {jnp.result_type(u0)}")
-    # a state that changes shape or dtype failed in lax.scan, naming carry[1]
-    described = lambda tree: jax.tree.map(lambda a: f"{jnp.result_type(a)}{list(jnp.shape(a))}", tree)  # noqa: E731
-    if jax.tree.structure(state0) != jax.tree.structure(state1) or described(state0) != described(state1):
-        raise ValueError(f"the controller's step must return a state of the shapes and dtypes it was given (the loop carries it): {described(state0)} became {described(state1)}")
+    # a state that changes shape or dtype failed in lax.scan, naming carry[1]; the loop needs
+    # the step's state to come back as it went in (init's may differ: a list, a Python float)
+    described = lambda tree: jax.tree.map(lambda a: f"{a.dtype}{list(a.shape)}", jax.eval_shape(lambda t: t, tree))  # noqa: E731
+    following = jax.eval_shape(lambda s: step(params, s, y0)[0], state1)
+    if jax.tree.structure(following) != jax.tree.structure(state1) or described(following) != described(state1):
+        raise ValueError(f"the controller's step must return a state of the shapes and dtypes it was given (the loop carries it): {described(state1)} became {described(following)}")
     if _wider(u0, y0.dtype):  # else lax.scan refuses the carry with a message that names no controller
         raise ValueError(f"the controller's step returns the torque u in {u0.dtype}, wider than the plant's {y0.dtype}: build its constants in the plant's dtype, or cast u with .astype(y.dtype)")
     # noise[k + 1] for iteration k; the last iteration's controller step (its u[T] is never

@@ -21,7 +21,7 @@ from jax.typing import ArrayLike
 
 from jaxflex import beam, checks, fileio
 from jaxflex.controllers.base import is_concrete
-from jaxflex.plant import DiscretePlant, LinearPlant, check_method, check_rk4_step, discretize, make_plant, n_modes_of
+from jaxflex.plant import DiscretePlant, LinearPlant, check_method, check_rk4_step, check_sampled, discretize, make_plant, n_modes_of
 
 READINGS = ("printed", "block")
 
@@ -93,9 +93,13 @@ def batch_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str, b
     controller diverging.
 
     Raises:
-      ValueError: for a concrete ``dt`` other than the nominal plant's (a 2 ms batch drawn
+      ValueError: for a ``nominal`` that is not a sampled plant, or of another number of
+        modes than ``n_modes``, or a concrete ``dt`` other than its (a 2 ms batch drawn
         beside a 1 ms ``nominal`` ran on either, by whether it held perturbations).
     """
+    check_sampled(nominal, "nominal")
+    if n_modes_of(nominal) != n_modes:
+        raise ValueError(f"n_modes = {n_modes} must be the nominal plant's number of modes, {n_modes_of(nominal)}: build both with one n_modes")
     if is_concrete(dt) and is_concrete(nominal.dt) and np.ndim(dt) == 0 == np.ndim(nominal.dt):
         try:
             given, built = float(dt), float(nominal.dt)

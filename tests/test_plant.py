@@ -200,7 +200,7 @@ def test_rk4_step_that_amplifies_a_mode_is_refused_by_the_configs():
         discretize(plant, 1e-3)
     # a thickness typed in mm (5 m) failed here, before tune printed its model, and the advice
     # (method = 'zoh') would have tuned a 5 m thick link: the message says to check units first
-    with pytest.raises(ValueError, match=r"Use method = 'zoh' \(exact for any dt\) or dt <= \S+ s, once the arm, dt and the 2 modes are what you meant: a unit slip \(a thickness in mm, dt in ms\) gives this too"):
+    with pytest.raises(ValueError, match=r"Use method = 'zoh' \(exact for any dt\) or dt <= \S+ s, once the arm, dt and the 2 modes are what you meant: a unit slip \(a thickness in mm, dt in ms\) gives this too, and so do more modes than the sample time holds \(each adds a faster one\)$"):
         discretize(make_plant(BeamParams(thickness_m=5.0), 2), 1e-3)
     # 50 modes of the paper's arm (n_modes = 50 was blamed on a unit slip alone): the mode count is named
     with pytest.raises(ValueError, match=r"the 50 modes are what you meant: .*and so do more modes than the sample time holds \(each adds a faster one\)$"):

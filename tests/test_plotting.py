@@ -378,3 +378,16 @@ def test_responses_mark_a_settling_time_on_its_signals_panels():
     assert not [line for ax in tip_axes for line in ax.get_lines() if list(line.get_xdata()) == [0.234, 0.234]]
     assert "DFS settled (q1, 2 % band): 0.234 s" in [text.get_text() for text in fig.axes[0].get_legend().get_texts()]
     plotting.plt.close(fig)
+
+
+def test_responses_refuse_a_settling_time_of_nothing_drawn():
+    t = np.arange(10) * 1e-3
+    runs = {"dfs": {"q1": np.zeros(10)}}
+    for settling, match in (
+        ({"fuzzy": {"q1": 0.1}}, r"settling\['fuzzy'\] must map some of the signals drawn, \['q1'\], of a run drawn, \['dfs'\]"),
+        ({"dfs": {"tip": 0.1}}, r"settling\['dfs'\] must map some of the signals drawn"),
+        ({"dfs": {"q1": None}}, r"settling\['dfs'\]\['q1'\] must be a settling time in s, >= 0; got None"),
+        ({"dfs": {"q1": -1.0}}, r"settling\['dfs'\]\['q1'\] must be a settling time in s, >= 0; got -1.0"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            plotting.responses(t, runs, [("q1", "q1 (m)")], {}, "t", settling=settling)

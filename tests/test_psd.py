@@ -394,3 +394,14 @@ def test_region_reduction_finds_a_moved_peak_and_tells_a_skirt():
         region_reduction_db(freqs, psd_open, psd_closed, [36.0, 13.0])
     with pytest.raises(ValueError, match="psd_closed must be a power spectral density"):
         region_reduction_db(freqs, psd_open, -psd_closed, [13.0, 36.0])
+
+
+def test_region_reduction_of_a_nan_or_zero_spectrum():
+    """A NaN closed-loop PSD (a diverged run) gave NaN dB beside a finite frequency and a
+    'peak'; an all-zero one gave inf dB at a 'peak'."""
+    freqs = np.arange(0.0, 101.0)
+    psd_open = 1.0 / (1 + (freqs - 13.0) ** 2) + 1e-9
+    nan = region_reduction_db(freqs, psd_open, np.full(freqs.shape, np.nan), [13.0])
+    assert np.isnan(nan.db[0]) and np.isnan(nan.f_closed_hz[0]) and not nan.is_peak[0]
+    zero = region_reduction_db(freqs, psd_open, np.zeros(freqs.shape), [13.0])
+    assert np.isinf(zero.db[0]) and not zero.is_peak[0]

@@ -1202,3 +1202,13 @@ def test_histograms_name_an_axis_offset_in_the_label_instead_of_over_it():
     assert shifted.get_xlabel() == "settling time (s) (ticks: +1e5)" and not shifted.xaxis.get_offset_text().get_visible()
     assert plain.get_xlabel() == "reduction_db"
     plotting.plt.close(fig)
+
+
+def test_report_with_a_diverged_run_has_no_region_cell_to_format(reproduced):
+    """A diverged run's region reduction is None throughout: report.md formatted its frequency
+    before checking it (TypeError), and reads n/a."""
+    from jaxflex.report import _report_md
+
+    _, res = copy.deepcopy(reproduced)
+    res["region_reduction_db"]["fuzzy"] = {key: [None, None] for key in ("db", "closed_loop_highest_hz", "is_peak")}
+    assert "| PD-type fuzzy | 1 | 102.24 |" in _report_md(res) and _report_md(res).count("| n/a |") >= 2

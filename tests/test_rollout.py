@@ -759,7 +759,7 @@ def test_a_users_controller_is_told_what_its_step_returned_wrong(plant2):
     (1, B), which rollout builds itself by mapping it."""
     sc = paper_scenario(plant2, horizon_s=0.01)
     growing = Controller(lambda p, y0: jnp.zeros((1,), y0.dtype), lambda p, s, y: (jnp.concatenate([s, s]), -s[:1]), lambda p: None)
-    with pytest.raises(ValueError, match=re.escape("the controller's step must return a state of the shapes and dtypes it was given (the loop carries it): float64[1] became float64[2]")):
+    with pytest.raises(ValueError, match=re.escape("the controller's step must return a state of the shapes and dtypes it was given (the loop carries it): float64[2] became float64[4]")):
         jf.rollout(plant2, growing, None, sc)
     counting = Controller(lambda p, y0: (), lambda p, s, y: (s, jnp.zeros((1,), jnp.int32)), lambda p: None)
     with pytest.raises(ValueError, match=r"the controller's step must return the torque u as floats, in the plant's dtype float64; got int32"):
@@ -768,3 +768,16 @@ def test_a_users_controller_is_told_what_its_step_returned_wrong(plant2):
     batch = sc._replace(x0=jnp.stack([sc.x0, 2 * sc.x0]))
     with pytest.raises(ValueError, match=re.escape("must return the torque u with shape (1,) for one scenario (N*m; rollout maps it over the batch of 2); got shape () per scenario")):
         jf.rollout(plant2, scalar, None, batch)
+
+
+def test_controllers_whose_init_state_differs_from_their_steps_still_run(plant2):
+    """The state check compares what the loop needs, a step's state with the next step's: an
+    init that returns a list where step returns a tuple, a Python int counter that step makes
+    int32, or a batched controller's scalar that step broadcasts, all ran before it."""
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    as_list = Controller(lambda p, y0: [jnp.zeros(1)], lambda p, s, y: ((s[0] + 1.0,), -0.0 * y[:1]), lambda p: None)
+    counter = Controller(lambda p, y0: 0, lambda p, s, y: (jnp.asarray(s, jnp.int32) + 1, -0.0 * y[:1]), lambda p: None)
+    broadcast = Controller(lambda p, y0: 0.0, lambda p, s, y: (jnp.zeros(y.shape[1:]) + s, -0.0 * y[:1]), lambda p: None, batched=True)
+    batch = sc._replace(x0=jnp.stack([sc.x0, 2 * sc.x0]))
+    for controller, scenario in ((as_list, sc), (counter, sc), (broadcast, batch)):
+        assert np.all(np.isfinite(np.asarray(jf.rollout(plant2, controller, None, scenario).x)))

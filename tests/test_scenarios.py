@@ -389,3 +389,8 @@ def test_batch_plant_refuses_a_sample_time_other_than_the_nominal_plants():
     with pytest.raises(ValueError, match=r"dt = 0.002 s must be the nominal plant's sample time, 0.001 s: build both at one dt"):
         batch_plant(arm, 2, 2e-3, "zoh", batch, nominal)
     assert batch_plant(arm, 2, 1e-3, "zoh", batch, nominal).Ad.shape == (2, 6, 6)
+    # likewise the number of modes: 3 for a perturbed batch, the nominal plant's 2 otherwise
+    with pytest.raises(ValueError, match=r"n_modes = 3 must be the nominal plant's number of modes, 2: build both with one n_modes"):
+        batch_plant(arm, 3, 1e-3, "zoh", batch, nominal)
+    with pytest.raises(ValueError, match=r"nominal must be a DiscretePlant"):
+        batch_plant(arm, 2, 1e-3, "zoh", batch, None)

@@ -68,10 +68,12 @@ def _figures(state: dict[str, Any], out_dir: str, reference_objective: float) ->
 def run_tune(config: TuneConfig, out_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True, on_step: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Tune, then write ``tuned.json`` (last), ``history.csv`` and figures into ``out_dir``.
 
-    ``tuned.json`` is there only when the run has finished: a run removes the folder's
-    previous one and its figures (``FIGURES``) first (once the folder and any checkpoint have
-    been checked), and its end writes them anew, staged and moved in together, so that a run
-    stopped while drawing leaves no figure (it left those drawn so far, with no tuned.json)."""
+    ``tuned.json`` is there only when the run has finished: a resumed run removes the
+    folder's previous one and its figures (``FIGURES``) first (once the folder and the
+    checkpoint have been checked), and its end writes them anew, staged and moved in
+    together, so that a run stopped while drawing leaves no figure (it left those drawn so
+    far, with no tuned.json). A new run refuses a folder that holds an earlier tuned.json
+    (ValueError) rather than removing it."""
     checks.instance("config", config, TuneConfig, "build one with TuneConfig(...)")  # before the lock makes the folder
     resume, progress = checks.flag("resume", resume), checks.flag("progress", progress)
     out_dir = fileio.check_path("out_dir (--out)", out_dir, "folder")

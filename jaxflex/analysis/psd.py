@@ -419,8 +419,9 @@ class RegionReduction(NamedTuple):
     f_closed_hz: jax.Array
     """Frequency of the closed loop's highest bin in the region (Hz)."""
     is_peak: jax.Array
-    """Whether that bin is a peak of the closed-loop PSD (at least its neighbours), not the
-    skirt of a peak outside the region, which reaches its highest at the region's edge."""
+    """Whether that bin is a peak of the closed-loop PSD (above 0 and at least both its
+    neighbours; never the spectrum's first or last bin), not the skirt of a peak outside the
+    region, which reaches its highest at the region's edge."""
 
 
 def region_reduction_db(
@@ -450,8 +451,8 @@ def region_reduction_db(
       rel_band: half-width of the open loop's search band as a fraction of each frequency.
 
     Returns:
-      ``RegionReduction(db, f_closed_hz, is_peak)``: NaN (and False) where no bin lies in a
-      band or region.
+      ``RegionReduction(db, f_closed_hz, is_peak)``: NaN, NaN and False where no bin lies
+      in a band or region, or a PSD there is NaN (a diverged run).
 
     Raises:
       ValueError: as ``vibration_reduction_db``, and for concrete ``mode_freqs_hz`` that
@@ -472,7 +473,9 @@ def _region_reduction_db(freqs, psd_open, psd_closed, mode_freqs_hz, rel_band):
     closed_index = jnp.argmax(jnp.where(inside, psd_closed[None, :], -jnp.inf), axis=1)
     found = jnp.any(inside, axis=1) & ~jnp.isnan(f_open)
     db = 10.0 * jnp.log10(psd_open[open_index] / psd_closed[closed_index])
+    found = found & ~jnp.isnan(db)  # a NaN PSD (a diverged run) in the band or the region: no frequency, no peak
     below = psd_closed[jnp.maximum(closed_index - 1, 0)]
     above = psd_closed[jnp.minimum(closed_index + 1, freqs.shape[0] - 1)]
-    is_peak = found & (closed_index > 0) & (closed_index < freqs.shape[0] - 1) & (psd_closed[closed_index] >= below) & (psd_closed[closed_index] >= above)
+    top = psd_closed[closed_index]
+    is_peak = found & (closed_index > 0) & (closed_index < freqs.shape[0] - 1) & (top > 0) & (top >= below) & (top >= above)
     return RegionReduction(jnp.where(found, db, jnp.nan), jnp.where(found, freqs[closed_index], jnp.nan), is_peak)
