@@ -643,13 +643,15 @@ def test_readme_api_tour_runs(tmp_path):
 
 def test_reproduce_prints_rounded_figures_beside_the_papers(reproduced):
     _, res = reproduced
-    freqs_line, db_line = cli._reproduce_summary(res).split("\n")
+    freqs_line, db_line, moved_line = cli._reproduce_summary(res).split("\n")
     assert freqs_line.startswith("model natural frequencies: ") and freqs_line.endswith("(paper: 16, 55 Hz)")
     for f in res["model"]["natural_frequencies_hz"]:
         assert f"{f:.2f}" in freqs_line
     db = res["vibration_reduction_db"]
     expected = "DFS {:.1f}, {:.1f}; fuzzy {:.1f}, {:.1f}".format(*db["dfs"], *db["fuzzy"])
     assert db_line == f"vibration reduction (dB, {res['psd']['name']}) at modes 1, 2: {expected} (paper, modes 1, 2: DFS 123.4, 66.9; fuzzy 102.2, 23.2)"
+    # the peak DFS moved off the open loop's bin, said where the 68 dB is read (only report.md said it)
+    assert moved_line.startswith(f"note: DFS moves mode 1's resonance from 13.32 to 17.6 Hz, where it is {res['region_reduction_db']['dfs']['db'][0]:.1f} dB below") and moved_line.endswith("(report.md)")
 
 
 def test_reproduce_summary_of_one_mode_and_a_diverged_run():
