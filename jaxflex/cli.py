@@ -227,6 +227,11 @@ def _progress_bar(args: argparse.Namespace) -> bool:
     return not args.no_progress and sys.stderr.isatty()
 
 
+def _say_recorded(command: str, said: Sequence[str], out: str) -> None:
+    """Tell which options a --resume took from the run in ``out`` (``said``: "--steps 400")."""
+    print(f"{command}: --resume: {', '.join(said[:-1]) + ' and ' if len(said) > 1 else ''}{said[-1]}, as the run in {out} recorded", file=sys.stderr)
+
+
 def _resume_marker(command: str) -> str:
     """The file a run of ``command`` leaves to resume from (imported late: the module is
     loaded by then)."""
@@ -536,7 +541,7 @@ def _tune(args: argparse.Namespace) -> int:
     values = fileio.read_toml(args.config) if args.config else {}
     if args.resume and args.steps is None and "steps" not in values and (recorded := recorded_steps(args.out)) is not None:
         args.steps = recorded  # the run's own target: the default 200 ended a run started for 400 halfway, with a final-looking tuned.json
-        print(f"tune: --resume: --steps {recorded}, as the run in {args.out} recorded", file=sys.stderr)
+        _say_recorded("tune", [f"--steps {recorded}"], args.out)
     given = {"controller": args.controller, "n_scenarios": args.scenarios, "n_heldout": args.heldout, "steps": args.steps, "seed": args.seed, "learning_rate": args.lr}
     options = {"n_scenarios": "--scenarios", "n_heldout": "--heldout", "learning_rate": "--lr"}
     with _as_typed(_sources({name: options.get(name, f"--{name}") if value is not None else None for name, value in given.items()}, values, args.config)):
@@ -643,7 +648,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values.update(taken)
         defaults = {f.name: f.default for f in dataclasses.fields(MCConfig)}
         if said := [f"--{option[key]} {value}" for key, value in taken.items() if value != defaults.get(key)]:  # "--unroll 1, as recorded" was every resume's
-            print(f"montecarlo: --resume: {', '.join(said[:-1]) + ' and ' if len(said) > 1 else ''}{said[-1]}, as the run in {args.out} recorded", file=sys.stderr)
+            _say_recorded("montecarlo", said, args.out)
     overrides = {"controller": args.controller, "n_scenarios": args.scenarios, "chunk": args.chunk, "seed": args.seed, "unroll": args.unroll}
     values.update({k: v for k, v in overrides.items() if v is not None})
     with _as_typed(sources):
