@@ -41,6 +41,7 @@ import os
 from typing import Any, NamedTuple
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from jaxflex import checks, fileio
 
@@ -200,6 +201,10 @@ def _number(cell: str) -> float | None:
         return None
 
 
+# BLAS on one thread: the factorisations are too small to share, and NumPy's default two
+# threads contended (a 100,000-sample record took 11 to 80 s to identify on a 2-core machine,
+# against 3 s on one thread). The caller's setting is back on return.
+@threadpool_limits.wrap(limits=1, user_api="blas")
 def identify_modes(t: Any, y: Any, n_modes: int = 2, *, start_s: float | None = None, end_s: float | None = None) -> Modes:
     """The ``n_modes`` lowest modes above the noise of a free-vibration record.
 
@@ -330,7 +335,7 @@ def _poles(y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
     lags = min(n // 3, MAX_ROWS) + 1
     # The Hankel matrix H = R^T Q^T has the left singular vectors of R^T: R from a QR of H^T
     # (a window of each channel per row) taken block by block, so memory stays O(lags^2)
-    # however long the record (100,000 samples of 2 channels: 5 s on 2 idle cores).
+    # however long the record (100,000 samples of 2 channels: 3 s on one core).
     r = np.zeros((0, lags))
     for c in range(y.shape[1]):
         windows = np.lib.stride_tricks.sliding_window_view(y[:, c], lags)
