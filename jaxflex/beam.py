@@ -3,8 +3,11 @@
 Kinematics (small deflections, horizontal plane, no gravity): a point at distance x along
 the beam moves transversally by ``y(x, t) = x theta(t) + v(x, t)`` with the elastic
 deflection ``v(x, t) = sum_i phi_i(x) q_i(t)`` expanded in ``n`` clamped-free cantilever
-mode shapes. The energies of NOTES.md (plus an optional tip payload of mass ``m_p`` and
-rotary inertia ``J_p``) give ``M Q'' + D Q' + K Q = F`` with ``Q = [theta, q_1..q_n]``.
+mode shapes. The kinetic energy ``T = 1/2 (I_H + I_b) theta_dot^2 + 1/2 int_0^L rho A
+(v_dot^2 + 2 v_dot x theta_dot) dx`` with ``I_b = rho A L^3 / 3``, and the strain energy
+``U = 1/2 int_0^L E I (v'')^2 dx`` (plus an optional tip payload of mass ``m_p`` and rotary
+inertia ``J_p``), give by Lagrange's equations ``M Q'' + D Q' + K Q = F`` with
+``Q = [theta, q_1..q_n]`` and ``F = [tau, 0, .., 0]``.
 
 Mode shapes are normalised so that ``int_0^L phi_i^2 dx = L``; then ``|phi_i(L)| = 2``. This
 only sets the scale of the modal coordinates ``q_i`` (metres at the tip / 2).

@@ -186,11 +186,11 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--cpu-devices", type=_cpu_devices, default=None, help=_CPU_DEVICES_HELP)
 
     mc = sub.add_parser("montecarlo", help="batched Monte Carlo over sampled scenarios: statistics, histograms, percentile bands")
-    mc.add_argument("--controller", choices=NAMES, default=None, help="controller (default dfs+fuzzy, or --params' own)")
+    mc.add_argument("--controller", choices=NAMES, default=None, help="controller (default dfs+fuzzy, or --params' own; with --resume, the folder's)")
     mc.add_argument("--params", default=None, help="tuned.json from `jaxflex tune` (default: the paper's gains)")
     mc.add_argument("--scenarios", type=_positive_int, default=None, help="number of scenarios N (default 10000; with --resume, the folder's)")
     mc.add_argument("--chunk", type=_positive_int, default=None, help="scenarios per chunk; memory grows with it (default 4096; with --resume, the folder's)")
-    mc.add_argument("--seed", type=int, default=None, help="PRNG seed (default 0)")
+    mc.add_argument("--seed", type=int, default=None, help="PRNG seed (default 0; with --resume, the folder's)")
     mc.add_argument("--unroll", type=_positive_int, default=None, help="samples per compiled loop iteration, 1-64 (default 1; with --resume, the folder's); on a GPU 8 runs a chunk about 3x as fast after 5-6 s more compiling, which pays in runs of millions of scenarios; slower on a CPU")
     mc.add_argument("--config", default=None, help="TOML file: MCConfig keys (percentiles, n_modes, ...) and [scenarios] and [beam] (your arm) tables")
     mc.add_argument("--out", default="montecarlo", help="output folder (default ./montecarlo)")

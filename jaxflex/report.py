@@ -39,7 +39,7 @@ SAMPLE_TIMES_S = (0.1, 0.5, 1.0)
 RUNS = ("open_loop", "dfs", "fuzzy")
 TUNED_CONTROLLERS = ("dfs", "fuzzy", "dfs+fuzzy")
 
-# What the paper reports (NOTES.md, "Results the paper reports").
+# What the paper reports (Ahmad, Nasir and Hambali, ISMA'09: its text and figures 5-8).
 PAPER = {
     "natural_frequencies_hz": [16.0, 55.0],
     "open_loop_range_m": [-0.03, 0.03],

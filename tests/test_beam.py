@@ -151,7 +151,7 @@ def test_assumed_mode_frequencies_converge_from_above():
 
 
 def test_paper_frequencies_are_not_reproduced_and_pinned_free_bound_holds():
-    """The paper's 16 Hz first mode exceeds the pinned-free bound of this beam (NOTES.md)."""
+    """The paper's 16 Hz first mode exceeds the pinned-free bound of this beam (tan x = tanh x)."""
     params = BeamParams()
     f1 = beam.exact_natural_frequencies_hz(params, 1)[0]
     huge_hub = beam.exact_natural_frequencies_hz(params._replace(hub_inertia_kg_m2=1e9), 1)[0]

@@ -1,9 +1,10 @@
 """Scalar objectives over a batch of closed-loop rollouts, and a stability penalty for DFS.
 
 Per scenario, the loss is a weighted sum of terms, each divided by its mean over the training
-batch under the paper's gains (so every term is dimensionless, and the paper's gains score
-exactly ``sum(weights)`` on the training batch under the mean; the CVaR and the worst case
-score them higher):
+batch under the reference gains (``TuneConfig.reference``: the paper's by default, or the
+``[initial]`` ones), so every term is dimensionless and the reference gains score exactly
+``sum(weights)`` on the training batch under the mean (the CVaR and the worst case score them
+higher):
 
 * ``tip_ise``: integral of the squared elastic tip deflection;
 * ``hub_ise``: integral of the squared hub angle (the hub-angle error; set-point 0);

@@ -92,7 +92,7 @@ next to the jumps below, where only 0.04 fires). Two limits:
   ``T log(1 / T) / 2`` into the no-rule side, then falls to 0.
 * for ``|e|, |e_dot|`` below about ``T`` the smooth slope is about half the faithful one (two
   rules tie for each of NS and PS, and a smooth max of tied arguments moves at half speed):
-  ``F(a, 0) / a`` is -1.50 faithful; at ``T = 0.02`` -0.72 for ``a <= 0.01``, -1.09 at 0.03.
+  ``F(a, 0) / a`` is -1.50 faithful; at ``T = 0.02`` -0.72 for ``a <= 0.001``, -0.80 at 0.01, -1.09 at 0.03.
 
 Sensible ``T``: 0.01-0.05 when ``e, e_dot`` reach O(0.1-1) (max error 0.012-0.076 where rules
 fire well, curvature O(1 / T)); keep ``T`` well below the amplitudes the loss depends on.
