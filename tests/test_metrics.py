@@ -175,14 +175,18 @@ def test_run_diverged_counts_a_tip_beyond_the_arm():
 
 def test_reproduce_run_metrics_use_the_same_rule():
     """reproduce's results.json and montecarlo's summary.json call the same runs diverged: a
-    tip grown to 2 m on the paper's 0.9 m arm, every state below 1e6."""
+    tip grown to 2 m on the paper's 0.9 m arm (to either side), every state below 1e6."""
     from types import SimpleNamespace
 
     from jaxflex.report import _run_metrics
 
     t = np.arange(3000) * DT  # the paper's 3 s horizon, which holds results.json's sample times
-    for amplitude, expected in ((2.0, True), (0.5, False)):
-        tip = amplitude * np.exp(3 * (t - t[-1])) * np.sin(2 * np.pi * 13 * t)
+    grow = np.exp(3 * (t - t[-1]))
+    tips = [2.0 * grow * np.sin(2 * np.pi * 13 * t), 0.5 * grow * np.sin(2 * np.pi * 13 * t),
+            -2.0 * grow * np.abs(np.sin(2 * np.pi * 13 * t)),  # on one side only: its max is 0, its |tip| 2 m
+            2.0 * grow * np.abs(np.sin(2 * np.pi * 13 * t))]
+    for tip in tips:
+        expected = bool(np.max(np.abs(tip)) > 0.9)
         x = np.stack([0 * t, tip / 2, 0 * t, 0 * t], axis=1)  # q1 = tip / 2: no state near 1e6
         traj = SimpleNamespace(x=jnp.asarray(x), z=jnp.stack([jnp.zeros(t.size), jnp.asarray(tip)], axis=1), u=jnp.zeros((t.size, 1)))
         assert _run_metrics(traj, DT)["diverged"] is expected

@@ -396,6 +396,37 @@ def test_region_reduction_finds_a_moved_peak_and_tells_a_skirt():
         region_reduction_db(freqs, psd_open, -psd_closed, [13.0, 36.0])
 
 
+@pytest.mark.parametrize(
+    "modes, peak_hz",
+    [
+        ([13.0, 36.0], 60.0),  # inside the last region, [21.6, 72): its upper edge is 2 fn, not less
+        ([13.0, 36.0], 80.0),  # beyond it: the skirt at the last bin below 72 Hz
+        ([13.0, 36.0], 25.0),  # mode 1's skirt rises toward its region's upper edge, 21.6 Hz: not a peak
+        ([4.0, 9.0], 6.0),  # an edge exactly on a bin, sqrt(4 x 9) = 6: the bin is the upper region's only
+    ],
+)
+def test_region_reduction_edges_are_half_open_from_f1_over_2_to_2_fn(modes, peak_hz):
+    """The regions as documented, read with NumPy: [f1 / 2, sqrt(f1 f2)), ..., [sqrt(fn-1 fn),
+    2 fn); in each, the closed loop's highest bin, a peak when it is at least both neighbours."""
+    freqs = np.arange(0.0, 101.0)
+    psd_open = sum(1.0 / (1 + (freqs - f) ** 2) for f in modes) + 1e-9
+    psd_closed = 1e-4 / (1 + ((freqs - peak_hz) / 1.5) ** 2) + 1e-12
+    region = region_reduction_db(freqs, psd_open, psd_closed, modes)
+    m = np.asarray(modes)
+    edges = np.concatenate([m[:1] / 2, np.sqrt(m[:-1] * m[1:]), m[-1:] * 2])
+    for i, f0 in enumerate(modes):
+        inside = np.flatnonzero((freqs >= edges[i]) & (freqs < edges[i + 1]))
+        top = inside[np.argmax(psd_closed[inside])]
+        band = np.flatnonzero(np.abs(freqs - f0) <= 0.15 * f0)
+        assert region.f_closed_hz[i] == freqs[top]
+        assert bool(region.is_peak[i]) == bool(psd_closed[top] >= max(psd_closed[top - 1], psd_closed[top + 1]))
+        assert region.db[i] == pytest.approx(10 * np.log10(psd_open[band].max() / psd_closed[top]), rel=1e-6)
+    expected = {60.0: ([21.0, 60.0], [False, True]), 80.0: ([21.0, 71.0], [False, False]),
+                25.0: ([21.0, 25.0], [False, True]), 6.0: ([5.0, 6.0], [False, True])}[peak_hz]
+    np.testing.assert_array_equal(region.f_closed_hz, expected[0])  # the same, written out
+    np.testing.assert_array_equal(region.is_peak, expected[1])
+
+
 def test_region_reduction_of_a_nan_or_zero_spectrum():
     """A NaN closed-loop PSD (a diverged run) gave NaN dB beside a finite frequency and a
     'peak'; an all-zero one gave inf dB at a 'peak'."""

@@ -336,6 +336,39 @@ def test_initial_state_components_are_drawn_independently():
     assert np.max(np.abs(corr - np.eye(5))) < 0.1
 
 
+def _pulse_and_step():
+    """Each scenario's signed pulse amplitude and step level, and their start samples (the
+    same key draws the same starts with the pulse or the step alone)."""
+    pulse = draw(dataclasses.replace(SPEC, step_max_n=0.0)).force[:, :, 0]
+    step = draw(dataclasses.replace(SPEC, impulse_max_n=0.0)).force[:, :, 0]
+    pulse_start, step_start = np.argmax(pulse != 0, axis=1), np.argmax(step != 0, axis=1)
+    return pulse[np.arange(N), pulse_start], pulse_start, step[:, -1], step_start
+
+
+def test_pulse_amplitude_and_step_level_are_uniform_in_both_signs():
+    """Uniform on [-impulse_max_n, impulse_max_n] and [-step_max_n, step_max_n]: drawn on
+    [0, max] instead, every pulse pushed the same way, with the same mean |amplitude| and
+    maximum that the test above checks."""
+    from scipy import stats
+
+    amplitude, _, level, _ = _pulse_and_step()
+    for values, top in ((amplitude, 0.4), (level, 0.2)):
+        assert stats.kstest(values / top, "uniform", args=(-1, 2)).pvalue > 1e-3
+        assert np.mean(values < 0) == pytest.approx(0.5, abs=4 * 0.5 / np.sqrt(N))
+
+
+def test_every_per_scenario_draw_is_independent_of_the_others():
+    """One key per quantity: the initial state, the pulse's start and amplitude, the step's
+    start and level, and the four plant factors. A key used twice (the density drawn with the
+    hub inertia's number, the payload with the pulse's amplitude key) correlates two of them
+    fully, which each one's own distribution does not show."""
+    sc = draw(SPEC)
+    amplitude, pulse_start, level, step_start = _pulse_and_step()
+    columns = [*sc.x0[:, [0, 1, 2, 4, 5]].T, amplitude, pulse_start, level, step_start, *sc.plant]
+    corr = np.corrcoef(np.stack(columns))
+    assert corr.shape == (13, 13) and np.max(np.abs(corr - np.eye(13))) < 0.1
+
+
 def test_an_impulse_of_one_sample_is_accepted():
     """impulse_duration_s may equal dt (the docs' range [dt, horizon_s / 2]): a one-sample pulse."""
     spec = ScenarioSpec(horizon_s=0.05, impulse_max_n=1.0, impulse_duration_s=1e-3, include_paper=False)

@@ -49,6 +49,11 @@ def test_reductions_against_numpy():
     assert float(objectives.reduce_losses(losses, ObjectiveSpec(reduction="cvar", cvar_level=0.9))) == pytest.approx(worst4, rel=1e-12)
     smooth = float(objectives.reduce_losses(losses, ObjectiveSpec(reduction="worst", worst_temperature=0.01)))
     assert l.max() - 0.01 * np.log(40) <= smooth <= l.max() + 1e-12
+    # the closed form, written in NumPy: T (log sum exp(l / T) - log B)
+    assert smooth == pytest.approx(0.01 * (np.log(np.sum(np.exp((l - l.max()) / 0.01))) + l.max() / 0.01 - np.log(40)), rel=1e-12)
+    for batch in (1, 2, 40):  # equal losses score exactly their value (the - T log B), as the mean does
+        equal = jnp.full(batch, 0.7)
+        assert float(objectives.reduce_losses(equal, ObjectiveSpec(reduction="worst", worst_temperature=0.05))) == pytest.approx(0.7, rel=1e-12)
     # Levels whose tail (1 - level) * B is a whole number average exactly that many losses,
     # although the product rounds above it in floating point ((1 - 0.7) * 10 = 3.0000000000000004).
     # a fractional tail is rounded up: 0.1 of 15 averages the worst 2
@@ -60,6 +65,17 @@ def test_reductions_against_numpy():
         expected = np.arange(batch)[-tail:].mean()
         got = float(objectives.reduce_losses(values, ObjectiveSpec(reduction="cvar", cvar_level=level)))
         assert got == pytest.approx(expected, rel=1e-12), (level, batch)
+
+
+def test_scenario_losses_weigh_normalised_terms_and_leave_out_those_weighted_0():
+    """sum of weight x term / scale over the weighted terms; a term weighted 0 is left out, not
+    multiplied by 0, so a NaN or inf there (a term the tuner was not asked for) does not reach
+    the loss or its gradient."""
+    terms = objectives.Terms(jnp.asarray([2.0, 4.0]), jnp.asarray([1.0, 3.0]), jnp.asarray([5.0, 6.0]), jnp.asarray([jnp.nan, jnp.inf]))
+    scales = objectives.Terms(*(jnp.asarray(v) for v in (2.0, 0.5, 10.0, 1.0)))
+    spec = ObjectiveSpec(tip_ise=1.0, hub_ise=0.5, effort=2.0, vibration=0.0)
+    expected = 1.0 * np.array([2.0, 4.0]) / 2.0 + 0.5 * np.array([1.0, 3.0]) / 0.5 + 2.0 * np.array([5.0, 6.0]) / 10.0
+    np.testing.assert_allclose(objectives.scenario_losses(terms, scales, spec), expected, rtol=1e-12)
 
 
 @pytest.mark.parametrize("spec", [ObjectiveSpec(reduction="cvar", cvar_level=0.7), ObjectiveSpec(reduction="worst", worst_temperature=0.05), ObjectiveSpec(reduction="mean")])
