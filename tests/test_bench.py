@@ -359,3 +359,53 @@ def test_unroll_section_compares_each_program_with_the_plain_loop_and_tabulates_
     (tmp_path / "unroll.json").write_text(json.dumps({"meta": meta, "rows": rows}))
     table = render_tables([str(tmp_path / "unroll.json")])
     assert "| montecarlo chunk | 4 | 3000 | 2 | " in table and table.count("| rollout grad | 4 | 20 |") == 2
+
+
+def test_time_calls_reads_its_fields_from_the_clocks(monkeypatch):
+    """A scripted clock: the first call (compiling) takes 5 s, five timed calls 0.1-0.5 s, and
+    the process time runs twice as fast as the wall clock. Each field is its documented
+    statistic of those times."""
+    import jaxflex.bench as bench
+
+    walls = [5.0, 0.1, 0.3, 0.2, 0.4, 0.5]
+    perf, proc, ticks = [0.0], [0.0], iter(walls)
+
+    def call():
+        took = next(ticks)
+        perf[0] += took
+        proc[0] += 2.0 * took
+        return jnp.zeros(())
+
+    monkeypatch.setattr(bench.time, "perf_counter", lambda: perf[0])
+    monkeypatch.setattr(bench.time, "process_time", lambda: proc[0])
+    timing = bench.time_calls(call, (), runs=5)
+    timed = np.array(walls[1:])
+    assert timing["first_call_s"] == pytest.approx(5.0) and timing["median_s"] == pytest.approx(np.median(timed))
+    assert timing["compile_s"] == pytest.approx(5.0 - np.median(timed))  # the first call less a run's time
+    assert timing["cpu_util"] == pytest.approx(2.0)
+    assert timing["p10_s"] == pytest.approx(np.percentile(timed, 10)) and timing["p90_s"] == pytest.approx(np.percentile(timed, 90))
+
+
+def test_measure_turns_each_timing_into_steps_per_second(monkeypatch):
+    """Rates are batch x horizon over each timing (the fastest time gives the p90 rate), and a
+    row names a capacity only for the controllers with a delay line, a defuzzifier only for
+    those with a fuzzy part."""
+    import jaxflex.bench as bench
+
+    timing = {"first_call_s": 3.0, "median_s": 0.2, "min_s": 0.1, "p10_s": 0.15, "p90_s": 0.4, "compile_s": 2.8, "cpu_util": 1.0, "runs": 5, "window_s": 1.0}
+    monkeypatch.setattr(bench, "time_calls", lambda *args, **kwargs: dict(timing))
+    for controller, capacity in (("open_loop", None), ("fuzzy", None), ("dfs", 64), ("dfs+fuzzy", 64)):
+        row = bench.measure(BenchConfig(controller=controller, batch=4, horizon=16, runs=1))
+        steps = 4 * 16
+        assert row["steps_per_second"] == pytest.approx(steps / 0.2) and row["steps_per_second_best"] == pytest.approx(steps / 0.1)
+        assert row["steps_per_second_p10"] == pytest.approx(steps / 0.4) and row["steps_per_second_p90"] == pytest.approx(steps / 0.15)
+        assert row["capacity"] == capacity and (row["defuzz"] is None) == ("fuzzy" not in controller)
+
+
+def test_flop_count_of_each_kind_of_operation():
+    """Counted by hand on a small jaxpr: exp is 5 transcendental operations; x ** 3 two
+    multiplications per element (10); each reduce_sum one addition per input element (5 + 5);
+    the floating comparison 5 and the select 5; the final addition 1."""
+    x = jnp.ones(5)
+    jaxpr = jax.make_jaxpr(lambda x: jnp.sum(jnp.exp(x) ** 3) + jnp.sum(jnp.where(x > 0.5, x, 0.0)))(x).jaxpr
+    assert count_flops(jaxpr) == (10 + 5 + 5 + 5 + 5 + 1, 5)

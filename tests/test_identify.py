@@ -86,6 +86,19 @@ def test_the_factorisations_run_on_one_blas_thread(monkeypatch):
     assert blas_threads() == before
 
 
+def test_a_component_that_alternates_sign_each_sample_is_no_mode():
+    """A real negative pole, (-0.995)^k (a mode aliased onto the Nyquist frequency, or a sensor
+    that flips sign each sample), is not a mode: asked for 2, only the 10 Hz one is found, and
+    alone it is exact (undamped 10 sqrt(1 + 0.02^2) Hz for a decay rate of 0.02 x 2 pi 10 1/s)."""
+    t = np.arange(3000) * DT
+    y = np.exp(-0.02 * 2 * np.pi * 10 * t) * np.cos(2 * np.pi * 10 * t) + 0.5 * (-0.995) ** np.arange(t.size)
+    with pytest.raises(ValueError, match=r"found 1 mode\(s\) above the noise in the window \(10 Hz\)"):
+        identify_modes(t, y, 2)
+    modes = identify_modes(t, y, 1)
+    np.testing.assert_allclose(modes.frequencies_hz, [10 * np.sqrt(1 + 0.02**2)], rtol=1e-6)
+    np.testing.assert_allclose(modes.damping, [0.02 / np.sqrt(1 + 0.02**2)], rtol=1e-5)
+
+
 def test_closed_form_sinusoids_offset_and_ramp():
     t = np.arange(2500) * 2e-3 + 7.0  # the record's clock need not start at 0
     freqs, damping = np.array([3.0, 11.0, 47.0]), np.array([0.05, 0.002, 0.2])

@@ -946,3 +946,45 @@ def test_a_negative_dfs_gain_is_noted(tmp_path, no_run, capsys):
             cli.main(["montecarlo", "--config", str(config), "--controller", controller, "--out", str(tmp_path / "o")])
         err = capsys.readouterr().err
         assert (f"note: [params] k = -55 of {config} is negative, the opposite sign to the paper's 55" in err) is noted
+
+
+def test_a_resumed_run_without_the_bar_counts_from_the_stored_chunks(tmp_path, monkeypatch, capsys):
+    """--no-progress's lines after a resume count the 30 scenarios already stored, as the bar
+    does (a stand-in runner, so that only the bookkeeping runs)."""
+    from jaxflex.heartbeat import Heartbeat
+
+    class Runner:
+        def __init__(self, config):
+            self.config, self.chunk, self.n_devices = config, config.run_chunk, 1
+
+        def run_chunk(self, index):
+            return {name: np.full(self.chunk, 0.0 if name == "diverged" else index + 1.0) for name in [*montecarlo.metric_names(self.config.n_modes), "diverged"]}
+
+    monkeypatch.setattr(montecarlo, "_Runner", Runner)
+    config = MCConfig(n_scenarios=45, chunk=10, scenarios=SPEC)
+
+    def interrupt(index):
+        if index == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_montecarlo(config, tmp_path, progress=False, figures=False, on_chunk=interrupt)
+    capsys.readouterr()
+    clock = iter(range(0, 1000, 20))  # every line is due
+    monkeypatch.setattr(montecarlo, "Heartbeat", functools.partial(Heartbeat, clock=lambda: next(clock)))
+    run_montecarlo(config, tmp_path, resume=True, progress=False, figures=False)
+    counts = [int(n) for n in re.findall(r"montecarlo: (\d+) of 45 scenarios", capsys.readouterr().err)]
+    assert counts and counts[-1] == 45 and min(counts) > 30
+
+
+def test_a_mode_at_the_nyquist_frequency_has_no_reduction():
+    """Modes strictly below the Nyquist frequency (500 Hz at 1 ms) get a reduction; one at it
+    gets NaN, as one above it does."""
+    import jax.numpy as jnp
+
+    from jaxflex.rollout import RunMetrics
+
+    metrics = RunMetrics(*(jnp.asarray(v) for v in (0.1, 2.0, 0.3, 5.0, 7.0, 0.0, 0.2, 1.0, False)), jnp.asarray([1.0, 1.0]))
+    row = montecarlo._metrics_row(metrics, jnp.asarray([10.0, 10.0]), jnp.asarray([499.0, 500.0]), 1.0, 500.0)
+    assert float(row["reduction_db_mode1"]) == pytest.approx(10.0)
+    assert np.isnan(float(row["reduction_db_mode2"]))

@@ -36,6 +36,24 @@ SMALL = dict(n_scenarios=12, n_heldout=8, scenarios=ScenarioSpec(horizon_s=0.3, 
 SHARED = dict(n_scenarios=24, n_heldout=12, scenarios=ScenarioSpec(horizon_s=0.4, impulse_max_n=0.3, youngs_modulus_rel=0.1))
 
 
+def script_heldout(monkeypatch, values) -> list:
+    """Make tune's held-out objective return ``values`` in turn (the training batch is left as
+    it is); the Problems made are listed in the list returned."""
+    import tuning.tuner
+
+    script, made = iter(values), []
+
+    class Scripted(tuning.tuner.Problem):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            evaluate = self.evaluate
+            self.evaluate = lambda raw, batch: (jnp.float32(next(script)), None) if batch is self.heldout else evaluate(raw, batch)
+            made.append(self)
+
+    monkeypatch.setattr(tuning.tuner, "Problem", Scripted)
+    return made
+
+
 @pytest.fixture(scope="module")
 def plant2():
     return jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")
@@ -158,6 +176,23 @@ def test_log_spectral_radius_gradient_at_a_whole_delay(plant2, delay_steps):
     h = 1e-6
     from_above = (exact(delay_steps + 2 * h) - exact(delay_steps + h)) / h  # one-sided, clear of the kink
     assert float(g_d) == pytest.approx(from_above, rel=1e-4)
+
+
+def test_log_spectral_radius_derivative_where_two_modes_tie_in_modulus():
+    """Eigenvalues 0.9 and -0.9: the derivative is that of one of the two, d log|lam_i| =
+    Re(w_i dM v_i / lam_i) from NumPy's eigenvectors (v_i, and w_i the rows of their inverse).
+    A left eigenvector taken by modulus alone can belong to the other one, orthogonal to v_i:
+    the derivative was then 1e16 or inf."""
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        basis = rng.standard_normal((4, 4))
+        matrix = basis @ np.diag([0.9, -0.9, 0.3, -0.2]) @ np.linalg.inv(basis)
+        direction = rng.standard_normal((4, 4))
+        _, tangent = jax.jvp(objectives.log_spectral_radius, (jnp.asarray(matrix),), (jnp.asarray(direction),))
+        values, right = np.linalg.eig(matrix)
+        left = np.linalg.inv(right)
+        tied = [np.real(left[i] @ direction @ right[:, i] / values[i]) for i in range(4) if abs(abs(values[i]) - 0.9) < 1e-9]
+        assert len(tied) == 2 and any(float(tangent) == pytest.approx(d, rel=1e-8) for d in tied)
 
 
 def test_objective_terms_read_their_own_metrics():
@@ -386,20 +421,9 @@ def test_early_stop_after_patience_validations_without_improvement(tmp_path):
 def test_patience_counts_validations_in_a_row_and_the_penalty_reads_the_delay(tmp_path, monkeypatch):
     """Held-out values 5, 6, 4, 6, 6 with patience 2: the improvement at step 2 resets the
     count, so the run stops after the validation at step 4 (a plain reading of the rule)."""
-    import tuning.tuner
     from jaxflex.analysis import stability
 
-    script = iter([5.0, 6.0, 4.0, 6.0, 6.0, 6.0])
-    made = []
-
-    class Scripted(tuning.tuner.Problem):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            evaluate = self.evaluate
-            self.evaluate = lambda raw, batch: (jnp.float32(next(script)), None) if batch is self.heldout else evaluate(raw, batch)
-            made.append(self)
-
-    monkeypatch.setattr(tuning.tuner, "Problem", Scripted)
+    made = script_heldout(monkeypatch, [5.0, 6.0, 4.0, 6.0, 6.0, 6.0])
     state = tune(TuneConfig(controller="dfs", steps=20, eval_every=1, patience=2, **SHARED), tmp_path, progress=False)
     best, bad, stop_at = math.inf, 0, None
     for step, val in enumerate([5.0, 6.0, 4.0, 6.0, 6.0]):
@@ -414,21 +438,80 @@ def test_patience_counts_validations_in_a_row_and_the_penalty_reads_the_delay(tm
     assert float(problem.dfs_log_radius(DFSParams(55.0, 0.005))) == pytest.approx(expected, rel=1e-5)
 
 
+def test_a_tie_is_no_improvement(tmp_path, monkeypatch):
+    """Held-out values 5, 5, 5 with patience 2: equal is not better, so the run stops after
+    the validation at step 2 and keeps step 0 (counted as better, it never stopped)."""
+    script_heldout(monkeypatch, [5.0, 5.0, 5.0, 5.0])
+    state = tune(TuneConfig(controller="dfs", steps=20, eval_every=1, patience=2, **SHARED), tmp_path, progress=False)
+    assert state["best_step"] == 0 and state["stopped_early"] and state["step"] == 3
+
+
+def test_the_final_point_never_stops_early(tmp_path, monkeypatch):
+    """Held-out values 5, 6, 7 over 2 updates with patience 2: the second bad validation is the
+    run's final point, so it ends as finished, not stopped early."""
+    script_heldout(monkeypatch, [5.0, 6.0, 7.0])
+    state = tune(TuneConfig(controller="dfs", steps=2, eval_every=1, patience=2, **SHARED), tmp_path, progress=False)
+    assert state["bad_evals"] == 2 and not state["stopped_early"] and state["step"] == 2
+
+
+def test_the_kept_gains_are_those_validated_at_the_best_step(tmp_path):
+    """An optimizer that climbs the objective keeps step 0: its parameters are the starting
+    ones (not those after the last update), and summarize scores them, so 'after' equals
+    'before' on both batches."""
+    import optax
+
+    state = tune(TuneConfig(controller="dfs", steps=20, eval_every=1, patience=2, **SHARED), tmp_path, progress=False, optimizer=optax.sgd(-0.05))
+    assert state["best_step"] == 0 and state["step"] == 3
+    tree_allclose(state["best_raw"], state["problem"].initial_raw, rtol=0)
+    summary = summarize(state)
+    assert summary["params"] == summary["initial_params"]
+    for batch in ("train", "heldout"):
+        assert summary["objective"][batch]["after"] == summary["objective"][batch]["before"]
+
+
+def test_a_resume_keeps_the_count_of_validations_without_improvement(tmp_path, monkeypatch):
+    """Interrupted after one bad validation (5, 6), the resumed run needs one more to stop,
+    as the uninterrupted run did (5, 6, 7): the count is in the checkpoint, not restarted."""
+    config = TuneConfig(controller="dfs", steps=20, eval_every=1, patience=2, checkpoint_every=1, **SHARED)
+    script_heldout(monkeypatch, [5.0, 6.0, 7.0, 7.0, 7.0])
+    full = tune(config, tmp_path / "full", progress=False)
+    assert full["stopped_early"] and full["step"] == 3
+
+    def interrupt(step):
+        if step == 2:
+            raise KeyboardInterrupt
+
+    script_heldout(monkeypatch, [5.0, 6.0])
+    with pytest.raises(KeyboardInterrupt):
+        tune(config, tmp_path / "cut", progress=False, on_step=interrupt)
+    script_heldout(monkeypatch, [7.0, 7.0, 7.0])
+    resumed = tune(config, tmp_path / "cut", resume=True, progress=False)
+    for key in ("step", "best_step", "bad_evals", "stopped_early"):
+        assert resumed[key] == full[key], key
+
+
+def test_a_finished_run_resumed_stops_where_the_longer_run_would(tmp_path, monkeypatch):
+    """Patience 1: a 1-step run ends on a worse final point (5, 6), which does not stop it; a
+    resume to 5 steps counts that point and stops at once, as the 5-step run did at step 2."""
+    config = TuneConfig(controller="dfs", steps=5, eval_every=1, patience=1, **SHARED)
+    script_heldout(monkeypatch, [5.0, 6.0, 4.0, 4.0, 4.0, 4.0])
+    full = tune(config, tmp_path / "full", progress=False)
+    assert full["stopped_early"] and full["step"] == 2
+    script_heldout(monkeypatch, [5.0, 6.0])
+    tune(dataclasses.replace(config, steps=1), tmp_path / "cut", progress=False)
+    script_heldout(monkeypatch, [4.0, 4.0, 4.0, 4.0])
+    resumed = tune(config, tmp_path / "cut", resume=True, progress=False)
+    for key in ("step", "best_step", "bad_evals", "stopped_early"):
+        assert resumed[key] == full[key], key
+
+
 def test_the_final_point_is_scored_and_may_be_kept(tmp_path, monkeypatch):
     """Held-out values 5 (step 0) then 4 (the parameters after the last of 3 updates, off the
     eval_every schedule): the final point is kept. Resumed with more steps, that point becomes
     an ordinary row and the run goes on to its new final point, with each step once."""
     import tqdm.auto
 
-    import tuning.tuner
-
-    script = iter([5.0, 4.0, 3.0, 2.0])
-
-    class Scripted(tuning.tuner.Problem):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            evaluate = self.evaluate
-            self.evaluate = lambda raw, batch: (jnp.float32(next(script)), None) if batch is self.heldout else evaluate(raw, batch)
+    script_heldout(monkeypatch, [5.0, 4.0, 3.0, 2.0])
 
     class Bar:  # tqdm's calls, recorded: the bar opens after each process's first (compiling) step
         made = []
@@ -446,7 +529,6 @@ def test_the_final_point_is_scored_and_may_be_kept(tmp_path, monkeypatch):
         def close(self):
             pass
 
-    monkeypatch.setattr(tuning.tuner, "Problem", Scripted)
     monkeypatch.setattr(tqdm.auto, "tqdm", Bar)
     config = TuneConfig(controller="dfs", steps=3, eval_every=10, **SHARED)
     state = tune(config, tmp_path)
