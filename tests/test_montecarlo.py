@@ -236,10 +236,7 @@ def full_run(tmp_path_factory):
 
 def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     config, full = FULL_CONFIG, full_run
-
-    def interrupt(index):
-        if index == 2:
-            raise KeyboardInterrupt
+    interrupt = stop_at_chunk(2)
 
     with pytest.raises(KeyboardInterrupt):
         run_montecarlo(config, tmp_path / "cut", progress=False, figures=False, on_chunk=interrupt)
@@ -716,24 +713,35 @@ def test_an_arm_that_overflows_the_run_dtype_is_refused_with_the_config():
     MCConfig(beam=BeamParams(youngs_modulus_pa=1e39), method="zoh")  # float64 holds it
 
 
+class StandInRunner:
+    """Stands in for montecarlo's simulation, so that only its bookkeeping runs: chunk i's
+    metrics are all i + 1, and nothing diverges."""
+
+    def __init__(self, config):
+        self.config, self.chunk, self.n_devices = config, config.run_chunk, 1
+
+    def run_chunk(self, index):
+        return {name: np.full(self.chunk, 0.0 if name == "diverged" else index + 1.0) for name in [*montecarlo.metric_names(self.config.n_modes), "diverged"]}
+
+
+def stop_at_chunk(stop: int):
+    """An on_chunk that interrupts the run (as Ctrl-C) when chunk ``stop`` is done."""
+
+    def interrupt(index):
+        if index == stop:
+            raise KeyboardInterrupt
+
+    return interrupt
+
+
 def test_resume_says_so_and_its_bar_starts_at_the_stored_chunks(tmp_path, monkeypatch, capsys):
     """A resumed run says how many chunks it found, and its progress bar starts at them: it
     said nothing, and the bar ran up from 0 through the stored chunks at a rate (and time
     left) that no simulated chunk had."""
 
-    class Runner:  # stands in for the simulation: the bookkeeping is what is tested
-        def __init__(self, config):
-            self.config, self.chunk, self.n_devices = config, config.run_chunk, 1
-
-        def run_chunk(self, index):
-            return {name: np.full(self.chunk, 0.0 if name == "diverged" else index + 1.0) for name in [*montecarlo.metric_names(self.config.n_modes), "diverged"]}
-
-    monkeypatch.setattr(montecarlo, "_Runner", Runner)
+    monkeypatch.setattr(montecarlo, "_Runner", StandInRunner)
     config = MCConfig(n_scenarios=45, chunk=10, scenarios=SPEC)
-
-    def interrupt(index):
-        if index == 2:
-            raise KeyboardInterrupt
+    interrupt = stop_at_chunk(2)
 
     clock = iter(range(0, 1000, 20))  # each reading 20 s after the last: a line every other chunk
     with monkeypatch.context() as patch, pytest.raises(KeyboardInterrupt):
@@ -950,22 +958,12 @@ def test_a_negative_dfs_gain_is_noted(tmp_path, no_run, capsys):
 
 def test_a_resumed_run_without_the_bar_counts_from_the_stored_chunks(tmp_path, monkeypatch, capsys):
     """--no-progress's lines after a resume count the 30 scenarios already stored, as the bar
-    does (a stand-in runner, so that only the bookkeeping runs)."""
+    does."""
     from jaxflex.heartbeat import Heartbeat
 
-    class Runner:
-        def __init__(self, config):
-            self.config, self.chunk, self.n_devices = config, config.run_chunk, 1
-
-        def run_chunk(self, index):
-            return {name: np.full(self.chunk, 0.0 if name == "diverged" else index + 1.0) for name in [*montecarlo.metric_names(self.config.n_modes), "diverged"]}
-
-    monkeypatch.setattr(montecarlo, "_Runner", Runner)
+    monkeypatch.setattr(montecarlo, "_Runner", StandInRunner)
     config = MCConfig(n_scenarios=45, chunk=10, scenarios=SPEC)
-
-    def interrupt(index):
-        if index == 2:
-            raise KeyboardInterrupt
+    interrupt = stop_at_chunk(2)
 
     with pytest.raises(KeyboardInterrupt):
         run_montecarlo(config, tmp_path, progress=False, figures=False, on_chunk=interrupt)
