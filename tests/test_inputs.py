@@ -222,3 +222,44 @@ def test_a_batch_with_plant_uncertainty_on_one_shared_plant_is_refused():
     plants = batch_plant(BeamParams(), 2, 1e-3, "rk4", batch, nominal)
     assert rollout(plants, dfs(), DFSParams(), batch).x.shape == (2, 10, 6)
     assert rollout(nominal, dfs(), DFSParams(), batch._replace(plant=None)).x.shape == (2, 10, 6)
+
+
+def test_bounds_are_inclusive_or_strict_as_their_messages_say():
+    """'in [low, high]' takes both ends; '> 0' refuses 0 and '>= 0' takes it; a NumPy bool
+    (as read from an array) is a flag; dt = 0 is not '> 0'."""
+    from jaxflex import checks
+    from jaxflex.heartbeat import Heartbeat
+
+    assert checks.integer("n", 5, 1, high=5) == 5
+    with pytest.raises(ValueError, match=r"n must be an integer in \[1, 5\]; got 6"):
+        checks.integer("n", 6, 1, high=5)
+    Heartbeat("x", "steps", 5, done=5)  # done = total: a resume of a finished run
+    with pytest.raises(ValueError, match=r"every_s must be a finite number of seconds > 0; got 0.0"):
+        Heartbeat("x", "steps", 5, every_s=0.0)
+    assert checks.number("x", 0.0) == 0.0
+    assert checks.flag("resume", np.bool_(True)) is True and checks.flag("resume", np.array([False])[0]) is False
+    with pytest.raises(ValueError, match=r"dt must be finite and > 0; got 0.0"):
+        by_name("fuzzy", dt=0.0)
+
+
+def test_a_sum_of_controllers_is_batched_only_when_both_parts_are():
+    """An unbatched part given a [n_y, B] measurement would run wrongly: the sum maps it."""
+    plain = Controller(lambda p, y0: (), lambda p, s, y: (s, jnp.zeros((1,), y.dtype)), lambda p: None)
+    assert plain.batched is False and dfs().batched is True
+    assert combine(dfs(), plain).batched is False and combine(plain, dfs()).batched is False
+    assert combine(dfs(), dfs()).batched is True
+
+
+def test_a_check_that_fails_on_concrete_parameters_is_reported_not_skipped():
+    """check_params skips a controller's check only when a parameter is traced; JAX's type
+    error from a check on concrete parameters (here a Python `if` inside its own jit) is a
+    broken check, and reaches the caller."""
+    from jaxflex.controllers.base import check_params
+
+    def check(params):
+        jax.jit(lambda v: 1 if v > 0 else 0)(params)
+
+    ctrl = Controller(lambda p, y0: (), lambda p, s, y: (s, jnp.zeros((1,), y.dtype)), check)
+    with pytest.raises(jax.errors.JAXTypeError):
+        check_params(ctrl, jnp.float32(1.0))
+    jax.jit(lambda p: check_params(ctrl, p))(jnp.float32(1.0))  # traced: skipped

@@ -986,3 +986,48 @@ def test_a_mode_at_the_nyquist_frequency_has_no_reduction():
     row = montecarlo._metrics_row(metrics, jnp.asarray([10.0, 10.0]), jnp.asarray([499.0, 500.0]), 1.0, 500.0)
     assert float(row["reduction_db_mode1"]) == pytest.approx(10.0)
     assert np.isnan(float(row["reduction_db_mode2"]))
+
+
+def test_each_unit_slip_note_at_its_threshold():
+    """The notes a run prints before it starts, just past their documented thresholds: initial
+    deflections of over a tenth of the arm's length (13 % here), a horizon shorter than mode 1's
+    period (half of it), a damping_ratio of 0.5 or more."""
+    from jaxflex import cli
+
+    arm = BeamParams()
+    spec = ScenarioSpec(q0_std_m=0.12)  # 0.12 m on the 0.9 m arm
+    notes = cli._scenario_notes(arm, 2, spec, {"q0_std_m": spec.q0_std_m}, "c.toml")
+    assert len(notes) == 1 and notes[0].startswith("[scenarios] q0_std_m = 0.12 m of c.toml gives initial modal deflections of 13%")
+    f1 = float(np.asarray(beam.natural_frequencies_hz(arm, 2))[0])
+    spec = ScenarioSpec(horizon_s=0.5 / f1)
+    notes = cli._scenario_notes(arm, 2, spec, {"horizon_s": spec.horizon_s}, "c.toml")
+    assert len(notes) == 1 and notes[0].startswith("mode 1's period")
+    assert cli._model_line(BeamParams(damping_ratio=0.5), 2, 1e-3).endswith("; a damping_ratio of 0.5 damps the modes heavily (1 % is 0.01)")
+
+
+def test_a_heartbeat_line_is_due_once_every_s_has_passed(capsys):
+    """Readings at 0, 10 and 30 s with every_s = 30: the second update, at exactly 30 s, prints."""
+    clock = iter([0.0, 10.0, 30.0])
+    beat = Heartbeat("x", "steps", 5, clock=lambda: next(clock))
+    beat.update(1)
+    beat.update(1)
+    assert capsys.readouterr().err == "x: 2 of 5 steps (40 %) after 30 s, about 60 s left\n"
+
+
+def test_a_resume_at_the_recorded_count_says_nothing_about_fewer_scenarios(tmp_path, monkeypatch, capsys):
+    """Asking a resume for as many scenarios as the folder recorded is no shrinking; asking for
+    fewer is said (the run itself is stood in for: only the CLI's note is tested)."""
+    from jaxflex import cli
+
+    def summary(config, out, **kwargs):
+        tip = {"mean": 0.01, "p5": 0.01, "p50": 0.01, "p95": 0.01}
+        return {"n_scenarios": config.n_scenarios, "devices": 1, "diverged_fraction": 0.0, "percentiles": [5, 50, 95],
+                "metrics": {"peak_tip_deflection_m": tip, "settling_time_s": {"nonfinite": 0, "count": config.n_scenarios}}}
+
+    monkeypatch.setattr(montecarlo, "recorded_settings", lambda out: {"n_scenarios": 5})
+    monkeypatch.setattr(montecarlo, "run_montecarlo", summary)
+    args = ["montecarlo", "--controller", "dfs", "--scenarios", "5", "--out", str(tmp_path / "o"), "--no-progress", "--resume"]
+    assert cli.main(args) == 0
+    assert "note: --resume" not in capsys.readouterr().err
+    assert cli.main([*args[:4], "4", *args[5:]]) == 0
+    assert "note: --resume: --scenarios asked for 4 scenarios, where the run in" in capsys.readouterr().err

@@ -1217,3 +1217,43 @@ def test_report_with_a_diverged_run_has_no_region_cell_to_format(reproduced):
     _, res = copy.deepcopy(reproduced)
     res["region_reduction_db"]["fuzzy"] = {key: [None, None] for key in ("db", "closed_loop_highest_hz", "is_peak")}
     assert "| PD-type fuzzy | 1 | 102.24 |" in _report_md(res) and _report_md(res).count("| n/a |") >= 2
+
+
+@pytest.mark.skipif(fileio.fcntl is None, reason="POSIX locks")
+def test_a_run_lock_inside_itself_under_another_spelling_of_the_folder(tmp_path):
+    """A block inside another on the same folder, spelt "dir/.", "dir/" or relative, is the
+    same run, not one 'in use by another run' (pathlib drops a trailing "." from tmp_path / ".",
+    so only strings show it)."""
+    with fileio.run_lock(tmp_path):
+        with fileio.run_lock(os.path.join(str(tmp_path), ".")):
+            pass
+        with fileio.run_lock(str(tmp_path) + os.sep):
+            pass
+        old = os.getcwd()
+        os.chdir(tmp_path.parent)
+        try:
+            with fileio.run_lock(tmp_path.name):
+                pass
+        finally:
+            os.chdir(old)
+
+
+@pytest.mark.skipif(fileio.fcntl is None, reason="POSIX locks")
+def test_the_sweep_leaves_an_old_tmp_symlink_and_its_target_alone(tmp_path):
+    """A .tmp-* symlink, however old, is not removed by the next write's sweep of stale
+    temporary files (nor is what it points to)."""
+    target = tmp_path / "target.txt"
+    target.write_text("data")
+    link = tmp_path / ".tmp-link"
+    os.symlink(target, link)
+    past = os.lstat(link).st_mtime - 60
+    os.utime(link, (past, past), follow_symlinks=False)
+    fileio.write_text(tmp_path / "new.md", "x")
+    assert os.path.islink(link) and target.read_text() == "data"
+
+
+def test_check_path_refuses_an_empty_path():
+    with pytest.raises(ValueError, match=r"out_dir must be a folder's path \(a non-empty str or os.PathLike\); got ''"):
+        fileio.check_path("out_dir", "", "folder")
+    with pytest.raises(ValueError, match=r"--config must be a file's path"):
+        fileio.read_toml("")

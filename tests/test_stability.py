@@ -927,3 +927,45 @@ def test_rightmost_root_gradient_matches_central_differences(plant, k, tau):
         np.testing.assert_allclose(float(jac[0, i]), fd.real, rtol=1e-6)
         np.testing.assert_allclose(float(jac[1, i]), fd.imag, rtol=1e-6, atol=1e-6 * abs(fd.real))
 
+
+
+class _Validated(Exception):
+    """Raised where stability_report.run starts its analysis: its options were accepted."""
+
+
+@pytest.fixture
+def validated_only(monkeypatch):
+    def stop(*args, **kwargs):
+        raise _Validated
+
+    monkeypatch.setattr(stability_report, "make_plant", stop)
+
+
+def test_a_chart_range_of_exactly_two_samples_is_accepted(tmp_path, validated_only):
+    """tau_max_s must span 'at least 2 samples': 2 ms at 1 ms does."""
+    with pytest.raises(_Validated):
+        stability_report.run(tmp_path, tau_s=0.001, tau_max_s=0.002, dt=1e-3)
+
+
+def test_the_default_gain_range_of_a_negative_gain_spans_it(tmp_path, validated_only, monkeypatch):
+    """k = -10: the chart's gains run over [3 k, 0] = [-30, 0], as [0, 3 k] does for k > 0."""
+    calls, real = [], np.linspace
+    monkeypatch.setattr(stability_report.np, "linspace", lambda *a, **k: (calls.append(a[:2]), real(*a, **k))[1])
+    with pytest.raises(_Validated):
+        stability_report.run(tmp_path, k=-10.0, dt=1e-3)
+    monkeypatch.undo()
+    assert (-30.0, 0.0) in [tuple(float(v) for v in c) for c in calls]
+
+
+def test_stability_json_replaces_the_earlier_one_after_the_chart(tmp_path, monkeypatch):
+    """stability.json, the file a reader waits for, is moved into place last, whatever order
+    the staging folder lists its files in."""
+    import os
+
+    from jaxflex import fileio
+
+    renamed, real_replace, real_listdir = [], os.replace, os.listdir
+    monkeypatch.setattr(fileio.os, "replace", lambda src, dst: (renamed.append(os.path.basename(dst)), real_replace(src, dst))[1])
+    monkeypatch.setattr(fileio.os, "listdir", lambda p: sorted(real_listdir(p), key=lambda n: n != stability_report.JSON_FILE))  # the JSON listed first
+    stability_report.run(tmp_path, k=20.0, n_k=2, tau_max_s=0.006, n_cheb=8)
+    assert renamed[-1] == stability_report.JSON_FILE and stability_report.CHART_FILE in renamed
