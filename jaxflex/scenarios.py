@@ -20,7 +20,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from jaxflex import beam, checks, fileio
-from jaxflex.controllers.base import is_concrete
+from jaxflex.controllers.base import is_concrete, same_dt
 from jaxflex.plant import DiscretePlant, LinearPlant, check_method, check_rk4_step, check_sampled, discretize, make_plant, n_modes_of
 
 READINGS = ("printed", "block")
@@ -105,7 +105,7 @@ def batch_plant(params: beam.BeamParams, n_modes: int, dt: float, method: str, b
             given, built = float(dt), float(nominal.dt)
         except (TypeError, ValueError):  # a dt that is no number: discretize names it
             given = built = None
-        if given is not None and not np.isclose(given, built, rtol=1e-6, atol=0.0):  # rtol: a float32 plant's 1e-3 is 1.00000005e-3
+        if given is not None and not same_dt(built, given):
             raise ValueError(f"dt = {given:g} s must be the nominal plant's sample time, {built:g} s: build both at one dt")
     if check_scenario(batch).plant is None:
         return nominal
