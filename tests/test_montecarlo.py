@@ -1006,7 +1006,8 @@ def test_each_unit_slip_note_at_its_threshold():
 
 
 def test_a_heartbeat_line_is_due_once_every_s_has_passed(capsys):
-    """Readings at 0, 10 and 30 s with every_s = 30: the second update, at exactly 30 s, prints."""
+    """Readings at 0, 10 and 30 s with every_s = 30: the second update, at exactly 30 s, prints.
+    Time left by the documented rate since the first update: (30 - 10) s per step x 3 steps."""
     clock = iter([0.0, 10.0, 30.0])
     beat = Heartbeat("x", "steps", 5, clock=lambda: next(clock))
     beat.update(1)
