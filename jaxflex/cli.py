@@ -398,6 +398,10 @@ def _run(args: argparse.Namespace) -> int:
         if tuned and tuned["tuned_for"]:
             model = results["model"]
             print(f"note: {args.params} was tuned for {', '.join(tuned['tuned_for'])}; its gains ran here on the paper's arm, {model['n_modes']} modes, {model['integrator'].upper()} at {model['dt_s'] * 1e3:g} ms (see report.md)")
+        if tuned and tuned["kept_start"]:
+            from jaxflex.report import KEPT_START
+
+            print(f"note: {args.params}: {KEPT_START}")
         if tuned and tuned["run"]["diverged"]:
             print(f"note: the tuned {tuned['controller']} gains of {args.params} diverge on the paper scenario (see report.md)")
         print(f"wrote {args.out}/results.json, {args.out}/report.md and figures in {args.out}/ ({time.perf_counter() - start:.1f} s)")

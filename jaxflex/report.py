@@ -239,6 +239,8 @@ def _report_md(results: dict[str, Any]) -> str:
         ]
         if tuned["tuned_for"]:
             lines += [f"These gains were tuned for {', '.join(tuned['tuned_for'])}; they are shown here on the paper's arm, model and sampling.", ""]
+        if tuned["kept_start"]:
+            lines += [f"{KEPT_START}.", ""]
         if run["diverged"]:
             lines += ["**The tuned gains' closed loop diverged on this scenario.**", ""]
         lines += ["| | parameters | q1 settling | tip range (m) | tip ISE (m^2 s) |", "|---|---|---|---|---|"]
@@ -272,6 +274,8 @@ def tuned_comparison(tuned: dict[str, Any]) -> list[TunedRow]:
 
 
 TUNED_FIGURE = "fig_tuned_response.png"  # with --params only
+# a tuned row equal to the paper's read as a tuned result when the run started from the paper's gains
+KEPT_START = "jaxflex tune kept the gains it started from: no update improved its held-out objective"
 FIGURES = {
     "fig4_fuzzy_surface.png": "control surface of the fuzzy controller over the normalised (angle, velocity) square (paper Fig. 4)",
     "fig5_dfs_response.png": "q1 and tip deflection, DFS against open loop, and beside them the stretch in which DFS settles (paper Fig. 5)",
@@ -293,6 +297,9 @@ class Tuned(NamedTuple):
       beam: the arm it was tuned for (the run's ``[beam]``; the paper's when absent).
       dt: the run's sample time (s; its ``[scenarios]`` dt, the paper's 1 ms when absent).
       n_modes, method: the plant model it was tuned on (default 2 modes, ``"rk4"``).
+      best_step: the update after which the run's held-out objective was best: 0 when no
+        update improved on the starting gains, which the run then kept (None when the file
+        does not say).
     """
 
     name: str
@@ -302,6 +309,7 @@ class Tuned(NamedTuple):
     dt: float
     n_modes: int = 2
     method: str = "rk4"
+    best_step: int | None = None
 
     def build(self, dt: float) -> tuple[Any, Any]:
         """The controller as it was tuned, for a loop sampled every ``dt`` seconds, and its
@@ -377,10 +385,12 @@ def load_tuned(path: str | os.PathLike) -> Tuned:
     n_modes = checks.integer(f"--params: {path}'s n_modes", config.get("n_modes", 2))
     method = config.get("method", "rk4")
     check_method(method, f"--params: {path}'s method")
+    best_step = data.get("best_step")
+    best_step = None if best_step is None else checks.integer(f"--params: {path}'s best_step", best_step, low=0)
     arm = config.get("beam", {})
     try:
         tuned_beam = beam.params_from_mapping({k: v for k, v in arm.items() if v is not None} if isinstance(arm, dict) else arm)
-        tuned = Tuned(name, values, options, tuned_beam, dt, n_modes, method)
+        tuned = Tuned(name, values, options, tuned_beam, dt, n_modes, method, best_step)
         tuned.build(dt)
     except ValueError as err:
         raise ValueError(f"--params: {path}: {err}") from None
@@ -459,6 +469,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
             "paper_run": paper_run,
             "beam": tuned.beam._asdict(),
             "tuned_for": tuned.differences(beam.BeamParams(), n_modes, DT, "rk4"),
+            "kept_start": tuned.best_step == 0,
             "run": _run_metrics(ttraj, DT),
         }
 

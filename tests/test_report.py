@@ -1058,6 +1058,29 @@ def test_reproduce_says_when_the_tuned_gains_diverge(tmp_path, capsys):
     assert re.search(r"\| paper \| k = 55, tau_s = 0.005 \| 0\.\d{3} s \| ", report)
 
 
+def test_reproduce_says_when_the_tune_run_kept_its_starting_gains(tmp_path, capsys):
+    """A tune run whose updates never improved its held-out objective keeps the gains it
+    started from (best_step 0). Started from the paper's gains, its tuned row equalled the
+    paper's row with nothing to say why; a run that moved its gains says nothing of it, and
+    a best_step that is not a count of updates is refused by name."""
+    tuned = tmp_path / "tuned.json"
+    out = tmp_path / "o"
+    kept = "jaxflex tune kept the gains it started from: no update improved its held-out objective"
+    tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 55.0, "tau_s": 0.005}, "best_step": 0}))
+    assert cli.main(["reproduce", "--out", str(out), "--params", str(tuned)]) == 0
+    assert f"note: {tuned}: {kept}\n" in capsys.readouterr().out
+    report = (out / "report.md").read_text()
+    assert f"\n{kept}.\n" in report
+    assert json.loads((out / "results.json").read_text())["tuned"]["kept_start"] is True
+    tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 60.0, "tau_s": 0.005}, "best_step": 7}))
+    assert cli.main(["reproduce", "--out", str(out), "--params", str(tuned)]) == 0
+    assert kept not in capsys.readouterr().out and kept not in (out / "report.md").read_text()
+    for bad in (-1, 2.5, "0"):
+        tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 55.0, "tau_s": 0.005}, "best_step": bad}))
+        assert cli.main(["reproduce", "--out", str(tmp_path / "bad"), "--params", str(tuned)]) == 2
+        assert f"--params: {tuned}'s best_step must be an integer >= 0; got {bad!r}" in capsys.readouterr().err
+
+
 def test_report_says_by_estimator_where_dfs_is_ahead(reproduced):
     """The paper's ordering (DFS ahead of fuzzy) is judged with the default estimator; the
     sentence also says where each other estimator puts DFS ahead, at the paper's two modes."""
