@@ -144,6 +144,7 @@ def responses(
                 label = f"{LABELS.get(run, run)} settled ({name}, 2 % band): {times[name]:.3g} s"
                 for col in range(axes.shape[1]):
                     axes[row, col].axvline(times[name], color=styles[run].get("color", "k"), ls=":", lw=1.2, label=label if col == 0 else None)
+    axes[-1, 0].set_xlabel("Time (s)")
     if whole:
         axes[0, 0].set_xlim(float(t[0]), end)
         _settled_note(axes[-1, 0], max(quick), float(t[-1]), "every run stays within {} of its largest excursion from its final value")
@@ -151,7 +152,6 @@ def responses(
         axes[0, 1].set_title(f"The first {_seconds(end - t[0], 2)} s", fontsize=9)
         axes[-1, 1].set_xlabel("Time (s)")
     axes[0, 0].legend(loc="upper right", fontsize=8)
-    axes[-1, 0].set_xlabel("Time (s)")
     fig.suptitle(title)
     fig.tight_layout()
     return fig
@@ -470,12 +470,12 @@ def percentile_bands(t: np.ndarray, bands: np.ndarray, percentiles: Sequence[flo
         ax.get_yaxis().set_ticks([])
     else:
         ax.legend(fontsize=8)
+    ax.set_xlabel("Time (s)")
     if np.shape(t)[0] > 1:
         view = _settled_view(t, bands)
         ax.set_xlim(float(t[0]), float(t[-1]) if view is None else view[1])
         if view is not None:
             _settled_note(ax, view[0], float(t[-1]), "every band stays within {} of the largest value drawn")
-    ax.set_xlabel("Time (s)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
     ax.set_title(title, fontsize=10)
@@ -512,7 +512,8 @@ def _settled_note(ax: plt.Axes, settled: float, horizon: float, claim: str) -> N
     """The note under a time axis that ends before the horizon; ``claim`` holds ``{}`` for
     the fraction."""
     text = f"from {_seconds(settled)} s to the horizon ({_seconds(horizon)} s) {claim.format(f'{SETTLED_FRACTION:.0%}')}"
-    ax.text(0.99, 0.03, text, transform=ax.transAxes, ha="right", va="bottom", fontsize=8, color="0.3")
+    # below the axis label, not inside the axes, where it lay over the settled curves
+    ax.annotate(text, xy=(0.5, 0.0), xycoords=ax.xaxis.label, xytext=(0, -2), textcoords="offset points", ha="center", va="top", fontsize=8, color="0.3")
 
 
 def _settled_view(t: np.ndarray, bands: np.ndarray) -> tuple[float, float] | None:

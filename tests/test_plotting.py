@@ -234,6 +234,17 @@ def test_figures_refuse_arrays_that_do_not_fit_their_axes():
     plotting.stability_chart(k, tau, radius, rightmost_real=-np.ones((3, 4)), first_delay_s=np.ones(4))  # the shapes that fit draw
 
 
+def _assert_note_below_the_axis(fig, ax):
+    """The settled note lies under the time axis' label and inside the figure: drawn inside
+    the axes, it lay over the settled curves."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    note, = ax.texts
+    box, label, axes_box = note.get_window_extent(renderer), ax.xaxis.label.get_window_extent(renderer), ax.get_window_extent(renderer)
+    assert box.y1 <= label.y0 and label.y1 <= axes_box.y0, (box, label, axes_box)
+    assert 0 <= box.y0 and 0 <= box.x0 and box.x1 <= fig.bbox.width, (box, fig.bbox)
+
+
 def test_percentile_bands_end_the_time_axis_when_the_motion_settles():
     # montecarlo's tip_bands.png drew 3 s while the response was over in 0.4 s
     t = np.arange(3000) * 1e-3
@@ -247,6 +258,7 @@ def test_percentile_bands_end_the_time_axis_when_the_motion_settles():
     assert 0.22 < settled < 0.25 and np.all(magnitude[t >= settled] <= 0.01 * magnitude.max())
     assert ax.get_xlim() == pytest.approx((0.0, 1.25 * settled))
     assert [x.get_text() for x in ax.texts] == [f"from {settled:.3g} s to the horizon (3 s) every band stays within 1% of the largest value drawn"]
+    _assert_note_below_the_axis(fig, ax)
     # motion to the end, or settling after a third of the horizon: the whole horizon, no note
     for bands in (np.stack([-np.ones_like(t), 0 * t, np.ones_like(t)]), np.stack([-1.0 * (t < 1.3), 0 * t, 1.0 * (t < 1.3)])):
         ax = plotting.percentile_bands(t, bands, [5.0, 50.0, 95.0], "y", "t").axes[0]
@@ -332,6 +344,7 @@ def test_runs_that_all_settle_early_end_the_time_axis_and_runs_that_ring_keep_th
     assert len(fig.axes) == 2 and fig.axes[0].get_xlim() == pytest.approx((0.0, 1.25 * settle)) and settle < 1.0
     note = f"from {np.format_float_positional(settle, precision=3, fractional=False, trim='-')} s to the horizon (3 s) every run stays within 1% of its largest excursion from its final value"
     assert [text.get_text() for text in fig.axes[1].texts] == [note]
+    _assert_note_below_the_axis(fig, fig.axes[1])
     # a run that rings to the end (or settles past a third of the horizon) keeps the whole horizon, alone
     for decay in (0.8, 2.0):  # 1 % of the peak never, and at 2.3 s
         fig = plotting.responses(t, {"open_loop": {"tip": _ringing(t, decay)}}, [("tip", "Tip (m)")], {}, "open loop")
