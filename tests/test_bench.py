@@ -65,6 +65,30 @@ def test_quick_bench_rows_are_well_formed(tmp_path):
         assert f"{row['steps_per_second_p10']:.3g}-{row['steps_per_second_p90']:.3g} ({row['runs']})" in line
 
 
+def test_the_gradient_is_set_against_the_forward_rate_of_the_same_loop_and_batch():
+    """The issue's gradient target is a fraction of the forward rate: the table says it where
+    a forward row of the same loop and batch ran (the quick subset ran its gradient at 1024
+    and its forward rows at 4096 only, so no printed figure compared the two)."""
+    from jaxflex.bench import SAME_PROGRAM, gradient_ratios, quick_configs
+
+    base = {"controller": "dfs+fuzzy", "defuzz": "centroid", "integrator": "zoh", "dtype": "float32", "batch": 1024, "horizon": 500,
+            "capacity": 64, "unroll": 1, "device": "cpu", "n_devices": 2}
+    rows = [
+        {**base, "mode": "forward", "steps_per_second": 8.0e7},
+        {**base, "batch": 4096, "mode": "forward", "steps_per_second": 2.0e8},  # another batch: not its pair
+        {**base, "mode": "grad", "steps_per_second": 6.0e6},
+        {**base, "dtype": "float64", "mode": "grad", "steps_per_second": 1.0e6},  # no forward row of its own
+    ]
+    assert gradient_ratios(rows) == ["value_and_grad dfs+fuzzy/centroid zoh float32 B=1024: 7.5% of the forward rate at the same batch"]
+    for field in SAME_PROGRAM:  # any field that differs makes another program
+        other = [rows[0] | {field: "other"}, rows[2]]
+        assert gradient_ratios(other) == [], field
+    # the quick subset pairs each of its gradient rows with such a forward row
+    configs = quick_configs()
+    for grad in (c for c in configs if c.mode == "grad"):
+        assert any(c.mode == "forward" and all(getattr(c, f) == getattr(grad, f) for f in ("controller", "defuzz", "integrator", "dtype", "batch", "horizon", "capacity", "unroll")) for c in configs)
+
+
 def test_interrupted_bench_leaves_an_earlier_json_file_whole(monkeypatch, tmp_path):
     from jaxflex import bench
 
