@@ -122,6 +122,8 @@ def _as_typed(options: dict[str, str | None]):
     call that takes those values."""
     try:
         yield
+    except fileio.UnknownKeys:  # names keys, not a value: "unknown config key(s) ['unknown']" read "unknown of FILE config key(s)"
+        raise
     except ValueError as err:
         message = str(err)
         for name, option in sorted(options.items(), key=lambda item: -len(item[0])):  # "beam length_m" before "beam"

@@ -386,6 +386,12 @@ def test_cli_refuses_unknown_config_key(tmp_path, capsys):
     with pytest.raises(fileio.UnknownKeys) as refused:  # the library, which does not know the file, names none
         TuneConfig.from_mapping({"initial": {"kk": 3.0}})
     assert str(refused.value) == "unknown initial parameter(s) ['kk'] for dfs; accepted: ['k', 'tau_s']"
+    # a misspelt key that is the start of the refusal's first word, or that word itself, is
+    # not the value refused: "unknown config key(s) ['unknown']" read "unknown of FILE config key(s)"
+    for text, what in (("u = 1\n", "config key(s) ['u']"), ("unknown = 1\n", "config key(s) ['unknown']"), ("[scenarios]\nunknown = 1\n", "scenario key(s) ['unknown']")):
+        bad.write_text(text)
+        assert cli.main(["tune", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+        assert capsys.readouterr().err.splitlines()[-1].startswith(f"jaxflex tune: error: unknown {what} in {bad}; accepted: ["), text
     bad.write_text('controller = "dfs"\nsteps = 300\n[objective]\ntip_ise = 1.0\n')  # the config a tune run was given
     assert cli.main(["montecarlo", "--config", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert f"--config: {bad} is a tune config: montecarlo does not read ['objective', 'steps']. Pass the tuned.json the run wrote as --params" in capsys.readouterr().err
@@ -653,6 +659,18 @@ def test_model_line_counts_the_modes_above_nyquist():
     line = cli._model_line(BeamParams(), 2, 0.02)
     assert line.endswith("(Nyquist 25 Hz); 1 mode(s) above Nyquist alias in what the controller measures")
     assert "above Nyquist" not in cli._model_line(BeamParams(), 2, 1e-3)
+    # a first mode exactly at Nyquist is refused, as one above it: the first of a few moduli
+    # whose mode 1 some float dt puts exactly at 0.5 / dt
+    for modulus in (71e9, 70e9, 72e9, 69e9, 73e9):
+        arm = BeamParams(youngs_modulus_pa=modulus)
+        f1 = float(np.asarray(natural_frequencies_hz(arm, 2), float)[0])
+        near = 0.5 / f1 + np.arange(-300, 301) * np.spacing(0.5 / f1)
+        exact = [float(dt) for dt in near if 0.5 / dt == f1]
+        if exact:
+            break
+    assert exact
+    with pytest.raises(ValueError, match=r"^dt must be below .* to lie below the Nyquist frequency"):
+        cli._model_line(arm, 2, exact[0])
     # the damping is named too, as the ratio each flexible mode of the model run gets (read
     # here off the continuous plant's eigenvalues, -Re(s) / |s|): a damping_ratio of 1 meant
     # as 1 % shows as 1, and a given Rayleigh pair as itself

@@ -576,6 +576,20 @@ def test_an_unknown_option_is_reported_with_its_commands_usage(capsys):
         assert err.startswith(f"usage: jaxflex {command} [-h]") and err.endswith(f"jaxflex {command}: error: unrecognized arguments: --bogus 3\n")
 
 
+def test_as_typed_renames_a_refusal_of_the_name_itself_only():
+    """A refusal is renamed when its first word is the parameter's name: not when that name
+    only begins the word (k inside "k1 must ..."), and never for unknown keys, whose first
+    word is "unknown" even when a misspelt key is called that."""
+    source = {"k": "[initial] k of f.toml", "unknown": "unknown of f.toml"}
+    for message, said in (("k must be > 0", "[initial] k of f.toml must be > 0"), ("k1 must be > 0", "k1 must be > 0")):
+        with pytest.raises(ValueError) as refused, cli._as_typed(source):
+            raise ValueError(message)
+        assert str(refused.value) == said
+    with pytest.raises(fileio.UnknownKeys) as refused, cli._as_typed(source):
+        raise fileio.UnknownKeys("config key(s)", ["unknown"], ["k"])
+    assert str(refused.value) == "unknown config key(s) ['unknown']; accepted: ['k']"
+
+
 def test_a_refused_option_is_named_as_typed(tmp_path, capsys):
     """The library names its parameter (learning_rate, tau_s); a value typed as an option is
     refused under the option's name, and one read from --config under its key and the file's

@@ -1228,6 +1228,9 @@ def test_a_bare_cli_resume_goes_on_to_the_runs_own_steps_and_a_new_run_keeps_an_
     assert cli.main(args) == 130 and asked == [7]
     assert f"tune: --resume: --steps 7, as the run in {tmp_path / 'run'} recorded" in capsys.readouterr().err
     assert cli.main([*args, "--steps", "9"]) == 130 and asked[-1] == 9  # an explicit --steps extends it
+    config.write_text("steps = 11\n[scenarios]\nhorizon_s = 0.05\n")  # so does the config's: README's "unless given others"
+    assert cli.main(args) == 130 and asked[-1] == 11
+    assert "--resume: --steps" not in capsys.readouterr().err
     monkeypatch.undo()
     earlier = tmp_path / "earlier"
     earlier.mkdir()
@@ -1267,6 +1270,28 @@ def test_a_full_disk_names_where_and_that_the_run_resumes(tmp_path, capsys, monk
     assert cli.main(["tune", "--out", str(out), "--no-progress"]) == 2
     said = capsys.readouterr().err.strip().splitlines()[-1]
     assert said == f"jaxflex tune: error: cannot write into {out}: {os.strerror(errno.ENOSPC)}; what was written is kept: free space, then the same command with --resume continues from the last checkpoint"
+
+
+@pytest.mark.parametrize("command", ["tune", "montecarlo"])
+def test_a_full_disk_before_anything_to_resume_from_promises_no_resume(tmp_path, capsys, monkeypatch, command):
+    """The full-disk message's "--resume continues" holds only once a checkpoint (tune) or a
+    run record (montecarlo) is written: before one, it sent the user to a --resume that is
+    refused (Ctrl-C says "nothing was written to resume from")."""
+    import errno
+
+    import tuning.run
+    from jaxflex import cli, montecarlo
+
+    out = tmp_path / "run"
+
+    def full(config, out_dir, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(tuning.run, "run_tune", full)
+    monkeypatch.setattr(montecarlo, "run_montecarlo", full)
+    assert cli.main([command, "--out", str(out), "--no-progress"]) == 2
+    said = capsys.readouterr().err.strip().splitlines()[-1]
+    assert said == f"jaxflex {command}: error: cannot write into {out}: {os.strerror(errno.ENOSPC)}"
 
 
 def test_a_log_file_gets_lines_not_a_progress_bar(tmp_path, monkeypatch):
