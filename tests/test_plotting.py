@@ -13,6 +13,15 @@ def _close_figures():
     plotting.plt.close("all")
 
 
+def _capture_tune_figures(monkeypatch):
+    """tuning.run._figures' calls to the plotting functions, recorded, each drawing an empty figure."""
+    seen = {"responses": [], "psds": [], "loss": []}
+    monkeypatch.setattr(plotting, "responses", lambda t, runs, signals, div, title, **k: seen["responses"].append((t, runs, title, k)) or plotting.plt.figure())
+    monkeypatch.setattr(plotting, "psds", lambda freqs, runs, modes, ylabel, title, **k: seen["psds"].append((freqs, runs, np.asarray(modes), title, k)) or plotting.plt.figure())
+    monkeypatch.setattr(plotting, "loss_curves", lambda steps, loss, vs, v, title, *a, **k: seen["loss"].append((title, a, k)) or plotting.plt.figure())
+    return seen
+
+
 def test_tune_psd_marks_the_modes_of_the_scenarios_own_plant(monkeypatch, tmp_path):
     # With plant uncertainty in the scenarios, a held-out arm's peaks sit away from the
     # nominal frequencies: the lines labelled "model modes" were the nominal arm's. The titles
@@ -23,12 +32,11 @@ def test_tune_psd_marks_the_modes_of_the_scenarios_own_plant(monkeypatch, tmp_pa
     arm = beam.BeamParams(length_m=0.8)
     config = TuneConfig(controller="dfs", n_scenarios=2, n_heldout=2, beam=arm, scenarios=ScenarioSpec(horizon_s=0.05, youngs_modulus_rel=0.4, payload_max_kg=0.1))
     problem = Problem(config)
-    marked, titles = [], {"responses": [], "psds": [], "loss": []}
-    monkeypatch.setattr(plotting, "psds", lambda freqs, runs, modes, ylabel, title, **k: marked.append(np.asarray(modes)) or titles["psds"].append(title) or plotting.plt.figure())
-    monkeypatch.setattr(plotting, "responses", lambda t, runs, signals, div, title, **k: titles["responses"].append(title) or plotting.plt.figure())
-    monkeypatch.setattr(plotting, "loss_curves", lambda steps, loss, vs, v, title, *a, **k: titles["loss"].append(title) or plotting.plt.figure())
+    seen = _capture_tune_figures(monkeypatch)
     state = {"problem": problem, "history": [{"step": 0, "loss": 1.0, "val_objective": 1.0}], "best_step": 0, "best_raw": problem.initial_raw}
     run._figures(state, str(tmp_path), 1.0)
+    marked = [call[2] for call in seen["psds"]]
+    titles = {"responses": [call[2] for call in seen["responses"]], "psds": [call[3] for call in seen["psds"]], "loss": [call[0] for call in seen["loss"]]}
     assert len(marked) == 3  # the paper scenario (nominal plant), then held-out 1 and 2
     nominal = np.asarray(beam.natural_frequencies_hz(arm, config.n_modes))
     assert titles["responses"][0].endswith(f"2 modes at {nominal[0]:.3g}, {nominal[1]:.3g} Hz")  # the nominal arm's, said as such
@@ -41,6 +49,45 @@ def test_tune_psd_marks_the_modes_of_the_scenarios_own_plant(monkeypatch, tmp_pa
         np.testing.assert_allclose(modes, expected, rtol=1e-6)
         title = f"dfs: paper vs tuned gains, held-out scenario {i + 1}\n0.8 m arm, 2 modes at {expected[0]:.3g}, {expected[1]:.3g} Hz (this scenario's plant)"
         assert titles["responses"][i + 1] == titles["psds"][i + 1] == title
+
+
+def test_tune_figures_get_the_tip_and_hub_their_psd_and_the_runs_looks(monkeypatch, tmp_path):
+    """What tune's figures are handed: loss.png the kept step, the reference gains' objective
+    and whether the loss holds the DFS penalty; each response the tip and the hub, each PSD
+    the tip's, with the reference gains in their controller's look."""
+    from jaxflex.analysis import welch
+    from tuning import run
+    from tuning.tuner import Problem, TuneConfig
+
+    config = TuneConfig(controller="dfs", n_scenarios=2, n_heldout=1, scenarios=ScenarioSpec(horizon_s=0.05))
+    problem = Problem(config)
+    seen = _capture_tune_figures(monkeypatch)
+    history = [{"step": s, "loss": 1.0 - 0.1 * s, "val_objective": 1.0 if s % 2 == 0 else None} for s in range(5)]
+    state = {"problem": problem, "history": history, "best_step": 4, "best_raw": problem.initial_raw}
+    assert run._figures(state, str(tmp_path), 0.75) == ["loss.png", "response_0.png", "psd_0.png", "response_1.png", "psd_1.png"]
+    (_, args, kwargs), = seen["loss"]
+    assert args == (4, ("paper", 0.75)) and kwargs == {"penalised": True}
+    t, runs, title, kwargs = seen["responses"][0]
+    assert title.startswith("dfs: paper vs tuned gains, paper scenario")
+    # the paper scenario starts at q1 = 1 mm with the hub at rest at 0: the tip's deflection is
+    # phi_1(L) q1 with |phi_1(L)| = 2 (report.md's normalisation), the hub angle 0
+    for name in ("paper gains", "tuned"):
+        assert abs(runs[name]["tip"][0]) == pytest.approx(2e-3, rel=1e-9)
+        assert runs[name]["hub"][0] == 0.0
+    assert kwargs == {"style_of": {"paper gains": "dfs"}}
+    freqs, psd, _, _, kwargs = seen["psds"][0]
+    assert kwargs == {"style_of": {"paper gains": "dfs"}}
+    assert freqs.max() == pytest.approx(0.5 / config.scenarios.dt)  # up to the loop's Nyquist frequency
+    for name in ("paper gains", "tuned"):  # the PSD of the tip deflection drawn beside it
+        _, expected = welch(np.asarray(runs[name]["tip"]), 1 / config.scenarios.dt, nperseg=min(1024, t.shape[0]))
+        np.testing.assert_allclose(psd[name], np.asarray(expected), rtol=1e-9)
+    # include_paper = false: no "paper scenario" figure (member 0 of the batch is a drawn one)
+    config = TuneConfig(controller="dfs", n_scenarios=2, n_heldout=1, scenarios=ScenarioSpec(horizon_s=0.05, include_paper=False))
+    problem = Problem(config)
+    seen = _capture_tune_figures(monkeypatch)
+    state = {"problem": problem, "history": [{"step": 0, "loss": 1.0, "val_objective": 1.0}], "best_step": 0, "best_raw": problem.initial_raw}
+    assert run._figures(state, str(tmp_path), 1.0) == ["loss.png", "response_0.png", "psd_0.png"]
+    assert [title.split("\n")[0] for _, _, title, _ in seen["responses"]] == ["dfs: paper vs tuned gains, held-out scenario 1"]
 
 
 def jax_index(tree, i):
@@ -404,3 +451,150 @@ def test_responses_refuse_a_settling_time_of_nothing_drawn():
     ):
         with pytest.raises(ValueError, match=match):
             plotting.responses(t, runs, [("q1", "q1 (m)")], {}, "t", settling=settling)
+
+
+def test_arm_label_of_one_mode_is_singular():
+    # "mode{'s' if n > 1}" -- one mode reads "1 mode", two "2 modes" (docstring's example)
+    assert plotting.arm_label(0.6, [15.7]) == "0.6 m arm, 1 mode at 15.7 Hz"
+    assert plotting.arm_label(0.6, [13.32, 36.47]) == "0.6 m arm, 2 modes at 13.3, 36.5 Hz"
+
+
+def test_settling_time_of_zero_is_accepted_and_a_bool_is_refused():
+    # the docstring refuses "a time that is not a number >= 0": 0 is allowed, True is not a number
+    t = np.arange(10) * 1e-3
+    runs = {"dfs": {"q1": np.zeros(10)}}
+    fig = plotting.responses(t, runs, [("q1", "q1 (m)")], {}, "t", settling={"dfs": {"q1": 0.0}})
+    assert any(list(line.get_xdata()) == [0.0, 0.0] for line in fig.axes[0].get_lines())
+    with pytest.raises(ValueError, match=r"settling\['dfs'\]\['q1'\] must be a settling time in s, >= 0; got True"):
+        plotting.responses(t, runs, [("q1", "q1 (m)")], {}, "t", settling={"dfs": {"q1": True}})
+
+
+def test_a_run_settling_between_a_third_and_half_of_the_horizon_keeps_the_whole_horizon():
+    # ZOOM_FRACTION = 1/3: a run settling at ~1.2 s of 3 s is not zoomed
+    t = np.arange(3000) * 1e-3
+    v = _ringing(t, np.log(100) / 1.2)
+    settle = _settles(t, v)
+    assert 1.0 < settle < 1.5  # past a third, before half
+    fig = plotting.responses(t, {"dfs": {"tip": v}}, [("tip", "Tip (m)")], {}, "t")
+    assert len(fig.axes) == 1 and fig.axes[0].get_xlim()[1] >= 3.0 and not fig.axes[0].texts
+
+
+def test_a_settling_time_marks_its_own_signals_row():
+    # a settling time of the second signal is drawn on the second row's panels only
+    t = np.arange(3000) * 1e-3
+    decay = np.exp(-20 * t) * np.cos(80 * t)
+    runs = {"open_loop": {"q1": np.cos(80 * t), "tip": np.cos(80 * t)}, "dfs": {"q1": decay, "tip": 2 * decay}}
+    fig = plotting.responses(t, runs, [("q1", "q1 (m)"), ("tip", "tip (m)")], {}, "t", settling={"dfs": {"tip": 0.3}})
+    axes = np.array(fig.axes).reshape(2, 2)
+    marked = [[any(list(line.get_xdata()) == [0.3, 0.3] for line in ax.get_lines()) for ax in row] for row in axes]
+    assert marked == [[False, False], [True, True]]
+
+
+def test_a_settling_time_that_is_not_finite_is_not_drawn():
+    # "a time that is not finite is not drawn"
+    t = np.arange(3000) * 1e-3
+    runs = {"dfs": {"q1": np.cos(80 * t)}}
+    fig = plotting.responses(t, runs, [("q1", "q1 (m)")], {}, "t", settling={"dfs": {"q1": float("inf")}})
+    lines = fig.axes[0].get_lines()
+    assert [line.get_label() for line in lines] == ["DFS"]
+    assert fig.axes[0].get_xlim()[1] < 10.0
+
+
+def test_axes_scaled_to_settled_runs_leave_a_margin():
+    # the settled runs' range, padded: their extremes are not on the frame
+    t = np.linspace(0.0, 1.0, 101)
+    decay = 1e-3 * np.exp(-5 * t) * np.cos(60 * t)
+    fig = plotting.responses(t, {"dfs": {"q1": decay}, "open_loop": {"q1": 1e35 * t**40}}, [("q1", "q1 (m)")], {"open_loop": True}, "t")
+    lo, hi = fig.axes[0].get_ylim()
+    span = decay.max() - decay.min()
+    assert lo < decay.min() - 0.05 * span and hi > decay.max() + 0.05 * span
+
+
+def test_psd_default_upper_frequency_is_150_hz_or_one_and_a_half_times_the_highest_mode():
+    # psd_limits hold values up to max(150, 1.5 f_max) and no further
+    freqs = np.linspace(0.0, 500.0, 501)
+    base = np.full(501, 1e-8)
+    spike = base.copy()
+    spike[120] = 1.0  # under 150 Hz: held even when the modes are low
+    lo, hi = plotting.psd_limits(freqs, [spike], [13.3, 36.5])
+    assert hi > 1.0
+    spike = base.copy()
+    spike[350] = 1.0  # beyond 1.5 * 200 = 300 Hz: not drawn, not held
+    lo, hi = plotting.psd_limits(freqs, [spike], [200.0])
+    assert hi < 1e-6  # the flat 1e-8 only, with its margin
+
+
+def test_psds_mark_only_the_modes_drawn_and_name_a_non_finite_run():
+    # modes above fmax are not marked; a non-finite run is named, not drawn; log scale
+    freqs = np.linspace(0.0, 500.0, 501)
+    good, bad = np.full(501, 1e-6), np.full(501, np.nan)
+    ax = plotting.psds(freqs, {"open_loop": good, "dfs": bad}, [13.3, 200.0], "PSD", "t", fmax=100.0).axes[0]
+    assert ax.get_yscale() == "log"
+    verticals = [line for line in ax.get_lines() if line.get_label().startswith("model modes")]
+    assert [line.get_xdata()[0] for line in verticals] == [13.3] and verticals[0].get_label() == "model modes (13.3 Hz)"
+    labels = [text.get_text() for text in ax.get_legend().get_texts()]
+    assert "DFS (non-finite, not drawn)" in labels
+    drawn = [line for line in ax.get_lines() if line.get_label() == "DFS (non-finite, not drawn)"]
+    assert all(len(line.get_xdata()) == 0 for line in drawn)
+
+
+def test_paper_bars_do_not_cover_the_estimators_bars():
+    # one bar per estimator plus the paper's, side by side in each group
+    red = {"hann-1024": {"dfs": [60.0, 50.0], "fuzzy": [40.0, 30.0]}, "hann-256": {"dfs": [55.0, 45.0], "fuzzy": [35.0, 25.0]}}
+    ax = plotting.reduction_bars(red, {"dfs": [123.4, 66.9], "fuzzy": [102.2, 23.2]}).axes[0]
+    spans = sorted((p.get_x(), p.get_x() + p.get_width()) for p in ax.patches)
+    assert len(spans) == 12
+    assert all(a[1] <= b[0] + 1e-9 for a, b in zip(spans, spans[1:]))  # no two bars overlap
+
+
+def test_percentile_band_spans_its_pair_and_the_median_is_its_own_row():
+    # the p5-p95 band lies between bands p5 and p95; the median line is the p50 row
+    t = np.linspace(0.0, 1.0, 11)
+    bands = np.stack([-2.0 - t, 0.5 + 0 * t, 3.0 + t])  # p5, p50, p95
+    ax = plotting.percentile_bands(t, bands, [5.0, 50.0, 95.0], "y", "t").axes[0]
+    (band,) = ax.collections
+    ys = band.get_paths()[0].vertices[:, 1]
+    assert ys.min() == pytest.approx(-3.0) and ys.max() == pytest.approx(4.0)
+    (median,) = [line for line in ax.get_lines() if line.get_label() == "median"]
+    np.testing.assert_array_equal(median.get_ydata(), bands[1])
+
+
+def test_stability_chart_marks_the_operating_point_in_ms_and_no_crossing_off_the_chart():
+    # tau is drawn in ms; a first destabilising delay beyond the chart's delays is no dot
+    k, tau = np.linspace(0, 60, 7), np.arange(1, 13) * 1e-3
+    radius = np.full((12, 7), 0.9)
+    fig = plotting.stability_chart(k, tau, radius, -np.ones((12, 7)), np.full(7, 0.5), point=(20.0, 0.004))
+    ax = fig.axes[0]
+    star = [line for line in ax.get_lines() if line.get_marker() == "*"]
+    assert [(float(line.get_xdata()[0]), float(line.get_ydata()[0])) for line in star] == [(20.0, 4.0)]
+    assert not [line for line in ax.get_lines() if line.get_marker() == "o"]
+    assert "continuous: first destabilising delay (exact crossings)" not in [t.get_text() for t in ax.get_legend().get_texts()]
+
+
+def test_calibration_frequencies_on_a_log_scale_over_a_decade_and_damping_of_the_measured_modes():
+    # "log scale over a decade or more"; P25: measured damping of modes 1..n_d only
+    fig = plotting.calibration(np.array([13.0, 140.0]), np.array([13.5, 145.0]), np.array([13.0, 140.0]), "t", np.array([0.01]), np.array([0.01, 0.012]))
+    assert fig.axes[0].get_yscale() == "log"
+    measured = [line for line in fig.axes[2].get_lines() if line.get_label() == "measured"]
+    assert list(measured[0].get_xdata()) == [1]
+    fig = plotting.calibration(np.array([13.0, 36.0]), np.array([13.5, 37.0]), np.array([13.0, 36.0]), "t")
+    assert fig.axes[0].get_yscale() == "linear"
+
+
+def test_histograms_log_bins_from_three_decades_and_count_non_finite_values():
+    # "three decades or more" get a log axis; non-finite values counted in the title
+    fig = plotting.histograms({"a": np.array([1.0, 50.0, 2000.0]), "b": np.array([1.0, 2.0, np.nan, np.inf, 3.0])}, {}, "t")
+    assert fig.axes[0].get_xscale() == "log"
+    assert fig.axes[1].get_title() == "b (2 non-finite)"
+
+
+def test_identification_draws_the_model_against_the_record():
+    # the "modes identified" line is the model's values, the "record" line the record's
+    t = np.linspace(0.0, 1.0, 11)
+    record = np.stack([np.sin(t), np.cos(t)], axis=1)
+    model = 0.5 * record[3:]
+    fig = plotting.identification(t, record, t[3:], model, ["hub", "tip"], "t")
+    for ax, col in zip(fig.axes, range(2)):
+        lines = {line.get_label(): line for line in ax.get_lines()}
+        np.testing.assert_array_equal(lines["record"].get_ydata(), record[:, col])
+        np.testing.assert_array_equal(lines["modes identified"].get_ydata(), model[:, col])

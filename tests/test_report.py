@@ -1294,3 +1294,93 @@ def test_check_path_refuses_an_empty_path():
         fileio.check_path("out_dir", "", "folder")
     with pytest.raises(ValueError, match=r"--config must be a file's path"):
         fileio.read_toml("")
+
+
+def _row(text, prefix):
+    """The one line of report.md that starts with ``prefix``."""
+    rows = [line for line in text.splitlines() if line.startswith(prefix)]
+    assert len(rows) == 1, (prefix, rows)
+    return rows[0]
+
+
+def test_format_value_says_n_a_for_non_finite():
+    """format_value: "n/a for a missing (diverged run) or non-finite value"."""
+    from jaxflex.report import format_value
+
+    assert [format_value(v) for v in (float("nan"), float("inf"), None, 1.5)] == ["n/a", "n/a", "n/a", "1.5"]
+
+
+def test_only_the_first_frequency_is_said_above_the_pinned_free_bound(reproduced):
+    """The bound is on the first flexible frequency; the paper's 55 Hz row says only "differs"."""
+    from jaxflex.report import _report_md
+
+    assert _row(_report_md(reproduced[1]), "| 2 | 55 |").endswith("| differs |")
+
+
+def test_time_response_rows_show_each_signals_own_range(reproduced):
+    """Every range cell is min .. max of its own signal; the paper column its run's."""
+    from jaxflex.report import _report_md
+
+    res = copy.deepcopy(reproduced[1])
+    res["runs"]["open_loop"]["q1"].update(min=-0.111, max=0.222)
+    res["runs"]["open_loop"]["tip_deflection_m"].update(min=-0.333, max=0.444)
+    res["runs"]["fuzzy"]["q1"].update(min=-0.0123, max=0.0456)
+    res["runs"]["fuzzy"]["tip_deflection_m"].update(min=-0.0789, max=0.0987)
+    text = _report_md(res)
+    assert _row(text, "| open loop | range |").startswith("| open loop | range | -0.03 .. 0.03 m | -0.111 .. 0.222 | -0.333 .. 0.444 |")
+    assert _row(text, "| PD-type fuzzy | range |").startswith("| PD-type fuzzy | range | -0.006 .. 0.025 m | -0.0123 .. 0.0456 | -0.0789 .. 0.0987 |")
+
+
+def test_a_diverged_run_has_one_row_that_says_so(reproduced):
+    from jaxflex.report import _report_md
+
+    res = copy.deepcopy(reproduced[1])
+    res["runs"]["dfs"]["diverged"] = True
+    text = _report_md(res)
+    assert "| DFS | all | | diverged | diverged | the closed loop diverged |" in text
+    assert "| DFS | settling time |" not in text
+
+
+def test_reduction_rows_q1_column_and_peak_or_skirt(reproduced):
+    """The q1 column holds vibration_reduction_db_q1; a region's highest bin is called a peak or a skirt as is_peak says."""
+    from jaxflex.report import _report_md
+
+    res = copy.deepcopy(reproduced[1])
+    res["vibration_reduction_db_q1"]["dfs"] = [11.1, 22.2]
+    res["region_reduction_db"]["dfs"] = {"db": [5.0, 6.0], "closed_loop_highest_hz": [17.5, 30.0], "is_peak": [True, False]}
+    text = _report_md(res)
+    assert _row(text, "| DFS | 1 |").endswith("| 11.1 | 5.0 (a peak at 17.5 Hz) |")
+    assert _row(text, "| DFS | 2 |").endswith("| 22.2 | 6.0 (at 30.0 Hz, a skirt) |")
+
+
+def test_equal_reductions_do_not_agree_with_the_papers_ordering(reproduced):
+    """The paper's ordering "agrees" only when DFS's reduction is the larger at every mode: a tie does not."""
+    from jaxflex.report import _report_md
+
+    res = copy.deepcopy(reproduced[1])
+    res["vibration_reduction_db"] = {**res["vibration_reduction_db"], "dfs": [20.0, 20.0], "fuzzy": [20.0, 10.0]}
+    assert "than the fuzzy controller at both modes does not agree with" in _report_md(res)
+
+
+def test_tuned_comparison_range_reads_min_to_max():
+    """The tip range "min .. max" (m)."""
+    from jaxflex.report import tuned_comparison
+
+    run = {"diverged": False, "q1": {"settling_time_s": 0.2}, "tip_deflection_m": {"min": -1e-3, "max": 2e-3, "ise": 4e-8}}
+    tuned = {"params": {"k": 60.0, "tau_s": 0.004}, "paper_params": {"k": 55.0, "tau_s": 0.005}, "run": run, "paper_run": run}
+    rows = tuned_comparison(tuned)
+    assert [row.tip_range for row in rows] == ["-0.001 .. 0.002"] * 2
+    assert [row.gains for row in rows] == ["k = 55, tau_s = 0.005", "k = 60, tau_s = 0.004"]
+
+
+def test_command_line_names_x64_only_for_float64_and_the_delay_in_ms(reproduced):
+    """--x64 for a float64 run only; tau in ms; the default estimator named first."""
+    from jaxflex.report import _report_md
+
+    for dtype, flag in (("float64", " --x64"), ("float32", "")):
+        res = copy.deepcopy(reproduced[1])
+        res["model"]["dtype"] = dtype
+        text = _report_md(res)
+        assert f"Command: `jaxflex reproduce --modes 2{flag}`." in text
+    assert "DFS u = -k (theta(t) - theta(t - tau)), k = 55 N*m/rad, tau = 5 ms" in text
+    assert "Default estimator: hann-1024 (Welch, hann window, 1024-sample segments, 512 overlap" in text

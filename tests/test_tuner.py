@@ -1075,10 +1075,11 @@ def test_tuning_sharded_over_devices_equals_one_device(tmp_path):
     assert "tune: note: the run took steps on 2 device(s) and goes on on 1: its result matches an uninterrupted run's within rounding" in out.stderr  # said, not only recorded
 
 
-def test_initial_gains_may_set_the_scales_where_the_papers_cannot_run(tmp_path):
+def test_initial_gains_may_set_the_scales_where_the_papers_cannot_run(tmp_path, monkeypatch):
     """At dt = 10 ms the paper's 5 ms delay does not fit the buffer, and DFS could not be tuned
     at all: the paper's gains set the objective's scales. reference = "initial" scales it by
     the [initial] gains, which then score 1 (the mean of one unit weight)."""
+    import tuning.run
     from tuning.run import run_tune
 
     coarse = dict(SHARED, n_scenarios=8, n_heldout=4, scenarios=ScenarioSpec(horizon_s=0.4, dt=0.01))
@@ -1103,13 +1104,16 @@ def test_initial_gains_may_set_the_scales_where_the_papers_cannot_run(tmp_path):
     light_hub = jf.BeamParams(hub_inertia_kg_m2=jf.BeamParams().hub_inertia_kg_m2 * 0.03)
     held = Problem(TuneConfig(controller="dfs", n_scenarios=4, n_heldout=2, method="zoh", beam=light_hub, scenarios=ScenarioSpec(horizon_s=8.0), reference="initial", initial={"tau_s": 0.002}))
     assert all(np.isfinite(float(t)) and float(t) > 0 for t in held.scales)
-    # on the paper's arm the paper's gains still score 1 by default, and the initial ones under "initial"
+    # on the paper's arm the paper's gains still score 1 by default, and the initial ones under
+    # "initial"; loss.png names the objective of those reference gains
+    drawn = []
+    monkeypatch.setattr(tuning.run, "_figures", lambda state, out, reference_objective: drawn.append(reference_objective) or [])
     for reference, scored in (("paper", "paper"), ("initial", "before")):
         config = TuneConfig(controller="dfs", reference=reference, initial={"k": 80.0}, steps=1, **dict(SHARED, n_scenarios=8, n_heldout=4))
-        state = tune(config, tmp_path / reference, progress=False)
-        objective = summarize(state)["objective"]["train"]
+        objective = run_tune(config, tmp_path / reference, progress=False)["objective"]["train"]
         assert objective[scored] == pytest.approx(1.0, rel=1e-12)
         assert objective["before"] != pytest.approx(objective["paper"], rel=1e-3)  # k = 80 is not the paper's 55
+        assert drawn[-1] == objective[scored]
 
 
 def test_reported_spectral_radius_is_float64_in_a_float32_run(tmp_path):
