@@ -609,7 +609,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     from jaxflex.beam import params_from_mapping
     from jaxflex.controllers.registry import PARAMETERS
     from jaxflex.montecarlo import MCConfig, recorded_settings, run_montecarlo
-    from jaxflex.report import format_value, load_tuned
+    from jaxflex.report import KEPT_START, format_value, load_tuned
     from jaxflex.scenarios import ScenarioSpec
     from tuning.tuner import TuneConfig
 
@@ -647,6 +647,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values.setdefault("beam", tuned.beam)  # the arm it was tuned for, and the model of it
         values.setdefault("n_modes", tuned.n_modes)
         values.setdefault("method", tuned.method)
+        if tuned.best_step == 0:
+            print(f"note: {args.params}: {KEPT_START}", file=sys.stderr)
     recorded = recorded_settings(args.out) if args.resume else {}
     if args.resume:  # what neither the options nor the config set: the folder's
         option = {"n_scenarios": "scenarios", "chunk": "chunk", "unroll": "unroll", "controller": "controller", "seed": "seed"}  # each key's argument

@@ -1072,11 +1072,13 @@ def test_reproduce_says_when_the_tuned_gains_diverge(tmp_path, capsys):
     assert re.search(r"\| paper \| k = 55, tau_s = 0.005 \| 0\.\d{3} s \| ", report)
 
 
-def test_reproduce_says_when_the_tune_run_kept_its_starting_gains(tmp_path, capsys):
+def test_reproduce_says_when_the_tune_run_kept_its_starting_gains(tmp_path, capsys, monkeypatch):
     """A tune run whose updates never improved its held-out objective keeps the gains it
     started from (best_step 0). Started from the paper's gains, its tuned row equalled the
-    paper's row with nothing to say why; a run that moved its gains says nothing of it, and
-    a best_step that is not a count of updates is refused by name."""
+    paper's row with nothing to say why; montecarlo --params says it too. A run that moved its
+    gains says nothing of it, and a best_step that is not a count of updates is refused by name."""
+    from jaxflex import montecarlo
+
     tuned = tmp_path / "tuned.json"
     out = tmp_path / "o"
     kept = "jaxflex tune kept the gains it started from: no update improved its held-out objective"
@@ -1086,6 +1088,10 @@ def test_reproduce_says_when_the_tune_run_kept_its_starting_gains(tmp_path, caps
     report = (out / "report.md").read_text()
     assert f"\n{kept}.\n" in report
     assert json.loads((out / "results.json").read_text())["tuned"]["kept_start"] is True
+    with monkeypatch.context() as patch:
+        patch.setattr(montecarlo, "run_montecarlo", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+        assert cli.main(["montecarlo", "--params", str(tuned), "--out", str(tmp_path / "m"), "--no-progress"]) == 130
+    assert f"note: {tuned}: {kept}\n" in capsys.readouterr().err
     tuned.write_text(json.dumps({"controller": "dfs", "params": {"k": 60.0, "tau_s": 0.005}, "best_step": 7}))
     assert cli.main(["reproduce", "--out", str(out), "--params", str(tuned)]) == 0
     assert kept not in capsys.readouterr().out and kept not in (out / "report.md").read_text()
