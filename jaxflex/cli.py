@@ -773,7 +773,7 @@ def _calibrate(args: argparse.Namespace) -> int:
             summary["identified"] = {"record": os.path.abspath(args.record), **modes.as_dict()}
             t, y, names = record
             title = f"{os.path.basename(args.record)}: " + ", ".join(f"{f:.4g} Hz (damping {100 * z:.3g} %)" for f, z in zip(modes.frequencies_hz, modes.damping))
-            plotting.save(plotting.identification(t, y, modes.times, modes.reconstruction, names, title), os.path.join(stage, "identification.png"))
+            plotting.save(plotting.identification(t, y, modes.times, modes.reconstruction, names, title, period_s=1 / float(min(modes.frequencies_hz))), os.path.join(stage, "identification.png"))
         fileio.write_json(os.path.join(stage, "calibration.json"), summary)
         _raise_pending()  # a Ctrl-C dropped while drawing stops the run before the files replace the old ones
     shown = "calibration.json, calibration.png" + (" and identification.png" if modes is not None else "")

@@ -508,10 +508,10 @@ def _seconds(value: float, digits: int = 3) -> str:
     return np.format_float_positional(value, precision=digits, unique=True, fractional=False, trim="-")
 
 
-def _settled_note(ax: plt.Axes, settled: float, horizon: float, claim: str) -> None:
-    """The note under a time axis that ends before the horizon; ``claim`` holds ``{}`` for
-    the fraction."""
-    text = f"from {_seconds(settled)} s to the horizon ({_seconds(horizon)} s) {claim.format(f'{SETTLED_FRACTION:.0%}')}"
+def _settled_note(ax: plt.Axes, settled: float, horizon: float, claim: str, end: str = "the horizon") -> None:
+    """The note under a time axis that ends before the horizon (``end`` names it); ``claim``
+    holds ``{}`` for the fraction."""
+    text = f"from {_seconds(settled)} s to {end} ({_seconds(horizon)} s) {claim.format(f'{SETTLED_FRACTION:.0%}')}"
     # below the axis label, not inside the axes, where it lay over the settled curves
     ax.annotate(text, xy=(0.5, 0.0), xycoords=ax.xaxis.label, xytext=(0, -2), textcoords="offset points", ha="center", va="top", fontsize=8, color="0.3")
 
@@ -656,18 +656,47 @@ def calibration(
     return fig
 
 
-def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model: np.ndarray, names: Sequence[str], title: str) -> plt.Figure:
+ZOOM_PERIODS = 5
+"""identification: the periods of the slowest mode its zoomed column shows."""
+
+
+def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model: np.ndarray, names: Sequence[str], title: str, period_s: float | None = None) -> plt.Figure:
     """A free-vibration record (every sample) and the model of its modes over the window
-    identified, one panel per channel."""
-    fig, axes = plt.subplots(len(names), 1, figsize=(9.0, 1.2 + 2.0 * len(names)), sharex=True, squeeze=False)
-    for ax, name, y, fit in zip(axes[:, 0], names, record.T, model.T):
-        ax.plot(t, y, color="0.6", lw=1.0, label="record")
-        ax.plot(t_model, fit, color="C0", lw=1.0, ls="--", label="modes identified")
-        ax.axvline(t_model[0], color="k", lw=0.8, ls=":")
-        ax.set_ylabel(name)
-        ax.grid(alpha=0.3)
+    identified, one row per channel.
+
+    A record that settles within ZOOM_FRACTION of its length (every channel within
+    SETTLED_FRACTION of its largest excursion from its last value) is drawn up to a quarter
+    past that time, with a note under the axis: a 100 s record of a decay over 10 s was a solid
+    band. With ``period_s`` (the slowest mode's period, s), a second column shows the first
+    ZOOM_PERIODS periods from the window's start, where the record and the model can be told
+    apart.
+    """
+    t, record, t_model, model = (np.asarray(a, dtype=float) for a in (t, record, t_model, model))
+    zoom = period_s is not None
+    fig, axes = plt.subplots(len(names), 2 if zoom else 1, figsize=(13.0 if zoom else 9.0, 1.2 + 2.0 * len(names)), sharex="col", squeeze=False, gridspec_kw={"width_ratios": [2, 1]} if zoom else None)
+    for row, (name, y, fit) in enumerate(zip(names, record.T, model.T)):
+        for ax in axes[row]:
+            ax.plot(t, y, color="0.6", lw=1.0, label="record")
+            ax.plot(t_model, fit, color="C0", lw=1.0, ls="--", label="modes identified")
+            ax.axvline(t_model[0], color="k", lw=0.8, ls=":")
+            ax.grid(alpha=0.3)
+        axes[row, 0].set_ylabel(name)
     axes[0, 0].legend(fontsize=8, loc="best")  # a hub that drifts up fills the upper right
-    axes[-1, 0].set_xlabel("Time (s)")
+    for ax in axes[-1]:
+        ax.set_xlabel("Time (s)")
+    settled = _run_settled(t, list(record.T)) if t.size > 1 else None
+    if settled is not None and t[0] < settled and settled - t[0] < ZOOM_FRACTION * (t[-1] - t[0]):
+        axes[0, 0].set_xlim(float(t[0]), _view_end(t, settled))
+        _settled_note(axes[-1, 0], settled, float(t[-1]), "every channel stays within {} of its largest excursion from its last value", "the record's end")
+    if zoom:
+        start = float(t_model[0])
+        axes[0, 1].set_xlim(start, start + ZOOM_PERIODS * float(period_s))
+        axes[0, 1].set_title(f"{ZOOM_PERIODS} periods of the slowest mode ({_seconds(float(period_s))} s each)", fontsize=9)
+        for row, (y, fit) in enumerate(zip(record.T, model.T)):
+            shown = np.concatenate([y[(t >= start) & (t <= start + ZOOM_PERIODS * period_s)], fit[t_model <= start + ZOOM_PERIODS * period_s]])
+            if shown.size and np.all(np.isfinite(shown)):
+                pad = 0.1 * (shown.max() - shown.min()) or 1e-12
+                axes[row, 1].set_ylim(shown.min() - pad, shown.max() + pad)
     fig.suptitle(title)
     fig.tight_layout()
     return fig

@@ -598,3 +598,35 @@ def test_identification_draws_the_model_against_the_record():
         lines = {line.get_label(): line for line in ax.get_lines()}
         np.testing.assert_array_equal(lines["record"].get_ydata(), record[:, col])
         np.testing.assert_array_equal(lines["modes identified"].get_ydata(), model[:, col])
+
+
+def test_identification_ends_where_the_record_settles_and_zooms_on_the_slowest_mode():
+    """calibrate --record drew a 100 s record of a decay over about 10 s as one solid band:
+    the whole-record column now ends a quarter past the time from which every channel stays
+    within 1 % of its largest excursion, and a second column shows 5 periods of the slowest
+    mode from the window's start, where the record and the model can be told apart."""
+    t = np.arange(0.0, 100.0, 1e-3)
+    hub = np.exp(-0.5 * t) * np.cos(2 * np.pi * 13.0 * t) + 0.3 * np.exp(-0.8 * t) * np.cos(2 * np.pi * 36.0 * t)
+    tip = 0.5 * np.exp(-0.5 * t) * np.cos(2 * np.pi * 13.0 * t)
+    record = np.stack([hub, tip], axis=1)
+    start = 0.25
+    window = t >= start
+    fig = plotting.identification(t, record, t[window], 0.9 * record[window], ["hub", "tip"], "tap.csv", period_s=1 / 13.0)
+    whole, zoom = np.array(fig.axes).reshape(2, 2).T
+    settle = max(_settles(t, hub), _settles(t, tip))
+    assert 8.0 < settle < 10.0  # exp(-0.5 t) falls to 1 % at 9.2 s
+    assert whole[0].get_xlim() == pytest.approx((0.0, 1.25 * settle))
+    (note,) = whole[1].texts
+    assert note.get_text() == f"from {settle:.3g} s to the record's end (100 s) every channel stays within 1% of its largest excursion from its last value"
+    assert zoom[0].get_xlim() == pytest.approx((start, start + 5 / 13.0))
+    assert zoom[0].get_title() == "5 periods of the slowest mode (0.0769 s each)"
+    for ax, y in zip(zoom, (hub, tip)):  # scaled to the stretch shown, not to the whole record
+        shown = y[(t >= start) & (t <= start + 5 / 13.0)]
+        lo, hi = ax.get_ylim()
+        assert lo < shown.min() and shown.max() < hi and hi - lo < 1.5 * (shown.max() - shown.min())
+        lines = {line.get_label(): line for line in ax.get_lines()}
+        np.testing.assert_array_equal(lines["modes identified"].get_xdata(), t[window])
+    # a hub that drifts does not settle: the whole record, no note, and one column without a period
+    drift = np.stack([hub + 1e-3 * t, tip], axis=1)
+    fig = plotting.identification(t, drift, t, drift, ["hub", "tip"], "tap.csv")
+    assert len(fig.axes) == 2 and fig.axes[0].get_xlim()[1] >= 99.9 and not fig.axes[1].texts
