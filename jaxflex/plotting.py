@@ -186,9 +186,7 @@ def _response_panel(ax: plt.Axes, t: np.ndarray, values: Mapping[str, np.ndarray
     settled = [v[: ends[run]] for run, v in values.items() if not diverged.get(run, False) and ends[run]]
     limits = None
     if settled and len(settled) < len(values):
-        lo, hi = min(np.min(v) for v in settled), max(np.max(v) for v in settled)
-        pad = 0.1 * (hi - lo) or 1e-12
-        limits = (lo - pad, hi + pad)
+        limits = _padded(min(np.min(v) for v in settled), max(np.max(v) for v in settled))
     for run, v in values.items():
         n = ends[run]
         if limits is not None and diverged.get(run, False):
@@ -503,6 +501,13 @@ def _view_end(t: np.ndarray, settled: float) -> float:
     return start + max(1.25 * (settled - start), 0.05 * span)
 
 
+def _padded(lo: float, hi: float) -> tuple[float, float]:
+    """Axis limits around the values from ``lo`` to ``hi``: a tenth of their span beyond each
+    (1e-12 around a flat signal)."""
+    pad = 0.1 * (hi - lo) or 1e-12
+    return lo - pad, hi + pad
+
+
 def _seconds(value: float, digits: int = 3) -> str:
     """``value`` to ``digits`` significant digits, without an exponent (200, not 2e+02)."""
     return np.format_float_positional(value, precision=digits, unique=True, fractional=False, trim="-")
@@ -695,8 +700,7 @@ def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model
         for row, (y, fit) in enumerate(zip(record.T, model.T)):
             shown = np.concatenate([y[(t >= start) & (t <= start + ZOOM_PERIODS * period_s)], fit[t_model <= start + ZOOM_PERIODS * period_s]])
             if shown.size and np.all(np.isfinite(shown)):
-                pad = 0.1 * (shown.max() - shown.min()) or 1e-12
-                axes[row, 1].set_ylim(shown.min() - pad, shown.max() + pad)
+                axes[row, 1].set_ylim(*_padded(shown.min(), shown.max()))
     fig.suptitle(title)
     fig.tight_layout()
     return fig
