@@ -647,7 +647,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
         values.setdefault("beam", tuned.beam)  # the arm it was tuned for, and the model of it
         values.setdefault("n_modes", tuned.n_modes)
         values.setdefault("method", tuned.method)
-        if tuned.best_step == 0:
+        if tuned.kept_start:
             print(f"note: {args.params}: {KEPT_START}", file=sys.stderr)
     recorded = recorded_settings(args.out) if args.resume else {}
     if args.resume:  # what neither the options nor the config set: the folder's

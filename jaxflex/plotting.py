@@ -125,7 +125,7 @@ def responses(
     quick, end = [], None
     if t.size > 1:
         settled = [_run_settled(t, list(sig.values())) for run, sig in values.items() if not diverged.get(run, False)]
-        quick = [s for s in settled if s is not None and s - t[0] < ZOOM_FRACTION * (t[-1] - t[0])]
+        quick = [s for s in settled if _settled_early(t, s)]
         end = _view_end(t, max(quick)) if quick and max(quick) > t[0] else None
     whole = end is not None and len(quick) == len(runs)  # every run settles early: no column to compare
     zoom = end is not None and not whole
@@ -159,6 +159,12 @@ def responses(
 
 ZOOM_FRACTION = 1 / 3
 """responses: runs settled within this fraction of the horizon get a zoomed column."""
+
+
+def _settled_early(t: np.ndarray, settled: float | None) -> bool:
+    """Whether a run settled at ``settled`` (None: it did not) did so within ZOOM_FRACTION of
+    the horizon ``t``, early enough for a time axis that ends after it."""
+    return settled is not None and settled - t[0] < ZOOM_FRACTION * (t[-1] - t[0])
 
 
 def _run_settled(t: np.ndarray, signals: Sequence[np.ndarray]) -> float | None:
@@ -690,7 +696,7 @@ def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model
     for ax in axes[-1]:
         ax.set_xlabel("Time (s)")
     settled = _run_settled(t, list(record.T)) if t.size > 1 else None
-    if settled is not None and t[0] < settled and settled - t[0] < ZOOM_FRACTION * (t[-1] - t[0]):
+    if _settled_early(t, settled) and settled > t[0]:
         axes[0, 0].set_xlim(float(t[0]), _view_end(t, settled))
         _settled_note(axes[-1, 0], settled, float(t[-1]), "every channel stays within {} of its largest excursion from its last value", "the record's end")
     if zoom:

@@ -311,6 +311,11 @@ class Tuned(NamedTuple):
     method: str = "rk4"
     best_step: int | None = None
 
+    @property
+    def kept_start(self) -> bool:
+        """Whether the run kept the gains it started from (``best_step`` 0: ``KEPT_START``)."""
+        return self.best_step == 0
+
     def build(self, dt: float) -> tuple[Any, Any]:
         """The controller as it was tuned, for a loop sampled every ``dt`` seconds, and its
         checked parameters.
@@ -469,7 +474,7 @@ def reproduce(out_dir: str | os.PathLike, n_modes: int = 2, progress: Callable[[
             "paper_run": paper_run,
             "beam": tuned.beam._asdict(),
             "tuned_for": tuned.differences(beam.BeamParams(), n_modes, DT, "rk4"),
-            "kept_start": tuned.best_step == 0,
+            "kept_start": tuned.kept_start,
             "run": _run_metrics(ttraj, DT),
         }
 
