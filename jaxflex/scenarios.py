@@ -184,8 +184,8 @@ def horizon_steps(horizon_s: float, dt: float) -> int:
     if steps < 1:
         raise ValueError(f"horizon_s must cover at least one sample of dt = {dt}; got {horizon_s}")
     if steps > MAX_STEPS:
-        raise ValueError(f"horizon_s / dt must be at most {MAX_STEPS:.0e} samples (each scenario holds its force and noise for every one); "
-                         f"got {horizon_s:g} s at dt = {dt:g} s, {steps:.3g} samples")
+        raise ValueError(f"horizon_s / dt must be at most {MAX_STEPS:,} samples (each scenario holds its force and noise for every one); "
+                         f"got {horizon_s:g} s at dt = {dt:g} s, {steps:,} samples")
     return steps
 
 

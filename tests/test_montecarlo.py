@@ -252,6 +252,9 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     # fewer scenarios than the run's chunk cap the chunk whatever --chunk says: the fix names both
     with pytest.raises(ValueError, match="has chunks of 15 scenarios, this one 14 .*; pass --scenarios 15 or more and --chunk 15"):
         run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=14, chunk=15, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
+    # as many scenarios as the run's chunk: --chunk alone gives it back
+    with pytest.raises(ValueError, match="has chunks of 15 scenarios, this one 8 .*; pass --chunk 15$"):
+        run_montecarlo(MCConfig(controller="dfs+fuzzy", n_scenarios=15, chunk=8, scenarios=SPEC), tmp_path / "cut", resume=True, progress=False)
     # a refused resume leaves the finished run's summary; an interrupted one removes it, since
     # it would describe the run before the resume
     assert (tmp_path / "cut" / "summary.json").exists()
@@ -279,6 +282,10 @@ def test_resume_after_interrupt_gives_the_same_summary(tmp_path, full_run):
     names = [*montecarlo.metric_names(config.n_modes), "diverged"]
     np.savez(chunk, **{name: np.zeros(14) for name in names})  # every column, one row short
     with pytest.raises(ValueError, match=r"chunk_000003.npz does not hold this run's 15-scenario columns \(.*tip_ise \(14,\)"):
+        run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
+    # every column and one more, a 3-mode run's mode 3: another run's chunk, not this one's
+    np.savez(chunk, **{name: np.zeros(15) for name in names}, reduction_db_mode3=np.zeros(15))
+    with pytest.raises(ValueError, match=r"chunk_000003.npz does not hold this run's 15-scenario columns \(.*reduction_db_mode3 \(15,\)"):
         run_montecarlo(config, tmp_path / "cut", resume=True, progress=False, figures=False)
     # chunks without montecarlo.json cannot be matched to a configuration: a new run would
     # have taken them as its own
@@ -512,6 +519,24 @@ def test_params_tuned_at_another_dt_run_at_that_dt(tmp_path, capsys):
     # reproduce has no capacity option: the message names where these gains' buffer is set
     assert "tau_s must be in (0, 0.032] s (the delay buffer holds 32 samples of 0.001 s); got 0.05 s. The buffer is the capacity in the tuned.json's config (32 samples), which its tune run set." in err
     assert "dfs()" not in err
+
+
+def test_the_band_figure_says_how_many_of_chunk_0s_scenarios_it_draws(tmp_path, monkeypatch):
+    """The bands' title reads "over KEPT of COUNT scenarios": those left after the diverged
+    ones, of the band scenarios drawn from chunk 0 (2 of 5 here, from a stand-in tip_bands);
+    the median is drawn beside the percentiles asked for."""
+    from types import SimpleNamespace
+
+    config = MCConfig(controller="dfs", n_scenarios=3, scenarios=ScenarioSpec(horizon_s=0.05), percentiles=(10.0, 90.0))
+    columns = {name: np.asarray([1.0, 2.0, 3.0]) for name in montecarlo.metric_names(config.n_modes)}
+    columns["diverged"] = np.zeros(3, bool)
+    drawn = {}
+    monkeypatch.setattr(plotting, "histograms", lambda *args: None)
+    monkeypatch.setattr(plotting, "percentile_bands", lambda t, bands, percentiles, ylabel, title: drawn.update(percentiles=list(percentiles), title=title))
+    monkeypatch.setattr(plotting, "save", lambda fig, path: None)
+    monkeypatch.setattr(montecarlo, "tip_bands", lambda runner, percentiles: (np.arange(2) * 1e-3, np.zeros((len(percentiles), 2)), 2, 5))
+    montecarlo._figures(SimpleNamespace(config=config, beam=config.beam), columns, str(tmp_path))
+    assert "over 2 of 5 scenarios" in drawn["title"] and drawn["percentiles"] == [10.0, 50.0, 90.0]
 
 
 def test_percentile_bands_pair_each_percentile_with_its_mirror():
@@ -993,15 +1018,20 @@ def test_a_resumed_run_without_the_bar_counts_from_the_stored_chunks(tmp_path, m
     assert counts and counts[-1] == 45 and min(counts) > 30
 
 
-def test_a_mode_at_the_nyquist_frequency_has_no_reduction():
-    """Modes strictly below the Nyquist frequency (500 Hz at 1 ms) get a reduction; one at it
-    gets NaN, as one above it does."""
+def test_each_column_is_its_run_metric_and_a_mode_at_the_nyquist_frequency_has_no_reduction():
+    """Each column of a run's row is the RunMetrics field it is named for (every field a value
+    of its own here: no other test recomputed the effort and final hub angle columns).
+    Modes strictly below the Nyquist frequency (500 Hz at 1 ms) get a reduction,
+    10 log10(open / closed); one at it gets NaN, as one above it does."""
     import jax.numpy as jnp
 
     from jaxflex.rollout import RunMetrics
 
-    metrics = RunMetrics(*(jnp.asarray(v) for v in (0.1, 2.0, 0.3, 5.0, 7.0, 0.0, 0.2, 1.0, False)), jnp.asarray([1.0, 1.0]))
+    metrics = RunMetrics(*(jnp.asarray(v) for v in (0.1, 2.0, 0.3, 5.0, 7.0, 0.25, 0.2, 1.0, False)), jnp.asarray([1.0, 1.0]))
     row = montecarlo._metrics_row(metrics, jnp.asarray([10.0, 10.0]), jnp.asarray([499.0, 500.0]), 1.0, 500.0)
+    assert set(row) == {*montecarlo.metric_names(2), "diverged"}
+    expected = {"peak_tip_deflection_m": 0.1, "tip_ise": 2.0, "control_effort": 7.0, "final_hub_angle_rad": 0.25, "settling_time_s": 0.2, "diverged": 0.0}
+    assert {name: float(row[name]) for name in expected} == expected
     assert float(row["reduction_db_mode1"]) == pytest.approx(10.0)
     assert np.isnan(float(row["reduction_db_mode2"]))
 
@@ -1031,6 +1061,18 @@ def test_a_heartbeat_line_is_due_once_every_s_has_passed(capsys):
     beat.update(1)
     beat.update(1)
     assert capsys.readouterr().err == "x: 2 of 5 steps (40 %) after 30 s, about 60 s left\n"
+
+
+def test_recorded_settings_take_integer_counts_and_known_controllers_only(tmp_path):
+    """What --resume runs at comes from the folder's record only where the record holds a
+    usable value: JSON's true and false are no count or seed, and a controller name jaxflex
+    does not know is not taken (the command line's, or its default, stands instead)."""
+    def recorded(record):
+        (tmp_path / montecarlo.META).write_text(json.dumps(record))
+        return montecarlo.recorded_settings(tmp_path)
+
+    assert recorded({"n_scenarios": True, "chunk": 4, "config": {"unroll": 2, "seed": False, "controller": "dfs"}}) == {"chunk": 4, "unroll": 2, "controller": "dfs"}
+    assert recorded({"n_scenarios": 6, "chunk": 3, "config": {"unroll": 1, "seed": 5, "controller": "pid"}}) == {"n_scenarios": 6, "chunk": 3, "unroll": 1, "seed": 5}
 
 
 def test_a_resume_at_the_recorded_count_says_nothing_about_fewer_scenarios(tmp_path, monkeypatch, capsys):

@@ -34,6 +34,10 @@ def test_initial_state_noise_and_plant_follow_their_distributions():
     np.testing.assert_allclose(sc.x0.std(axis=0), [0.01, 2e-3, 2e-3, 0.0, 3e-5, 3e-5], rtol=REL)
     # measurement noise: the angle column and the velocity column each with its own std
     np.testing.assert_allclose(sc.noise.reshape(-1, 2).std(axis=0), [1e-4, 5e-3], rtol=0.01)
+    # white: a new draw at every sample (one draw held for a whole scenario has the same
+    # standard deviation over the batch, and a lag-1 correlation of 1); 4000 x 199 pairs
+    for column in range(2):
+        assert abs(np.corrcoef(sc.noise[:, :-1, column].ravel(), sc.noise[:, 1:, column].ravel())[0, 1]) < 0.01
     # the plant: independent uniform scales, and a payload in [0, max] with mean max / 2
     p = sc.plant
     for scale, half_width in ((p.youngs_modulus_scale, 0.1), (p.density_scale, 0.05), (p.hub_inertia_scale, 0.2)):
@@ -56,8 +60,11 @@ def test_pulse_and_step_follow_their_distributions():
     assert np.all(np.abs(step - level[:, None]) * (np.abs(step) > 0) == 0)  # on once, at one level
     assert np.abs(level).max() <= 0.2 and np.abs(level).mean() == pytest.approx(0.1, rel=2 * REL)
     pulse_start, step_start = np.argmax(on, axis=1), np.argmax(np.abs(step) > 0, axis=1)
-    for start in (pulse_start, step_start):  # uniform over the first half of the horizon (100 samples)
-        assert start.max() <= 100 and start.mean() == pytest.approx(50, rel=2 * REL)
+    # a start uniform in [0, 0.1 s) switches the force on at the first sample at or after it,
+    # k = ceil(start / dt) (sample k is at t = k dt): uniform on 1 .. 100, mean 50.5
+    for start in (pulse_start, step_start):
+        assert start.min() == 1 and start.max() == 100
+        assert abs(start.mean() - 50.5) < 4 * np.sqrt((100**2 - 1) / 12 / N)
     assert abs(np.corrcoef(pulse_start, step_start)[0, 1]) < 0.1  # drawn apart
 
 
@@ -106,6 +113,16 @@ def test_the_horizon_is_rounded_to_the_nearest_whole_sample(horizon_s, steps):
     assert paper_scenario(make_plant(), horizon_s=horizon_s, dt=0.01).force.shape[0] == steps
 
 
+def test_a_horizon_of_exactly_max_steps_samples_is_accepted():
+    """'at most MAX_STEPS samples': MAX_STEPS itself runs, one more is refused, and the
+    refusal gives the count in full (as 1e+07 it read the same as the limit)."""
+    from jaxflex.scenarios import MAX_STEPS, horizon_steps
+
+    assert MAX_STEPS == 10**7 and horizon_steps(1e4, 1e-3) == MAX_STEPS
+    with pytest.raises(ValueError, match=r"horizon_s / dt must be at most 10,000,000 samples .*; got 10000 s at dt = 0.001 s, 10,000,001 samples$"):
+        horizon_steps(10000.001, 1e-3)
+
+
 def test_a_horizon_under_half_a_sample_is_refused():
     """0.004 s at 10 ms rounds to no sample at all (0.006 s rounds to one, above); each entry
     point that takes a horizon says so."""
@@ -140,6 +157,8 @@ def test_an_impulse_that_outlasts_the_horizon_is_refused():
     at the end of the horizon (a 0.2 s pulse over 0.05 s lasted 26-44 samples, not 200)."""
     with pytest.raises(ValueError, match=r"impulse_duration_s must be <= horizon_s / 2 = 0.025 s when impulses are on .*; got 0.2"):
         ScenarioSpec(horizon_s=0.05, impulse_max_n=1.0, impulse_duration_s=0.2)
+    with pytest.raises(ValueError, match=r"impulse_duration_s must be <= horizon_s / 2 = 0.025 s .*; got 0.03"):
+        ScenarioSpec(horizon_s=0.05, impulse_max_n=1.0, impulse_duration_s=0.03)  # within the horizon, past its half
     ScenarioSpec(horizon_s=0.05, impulse_duration_s=0.2)  # impulses off: the duration is unused
     spec = ScenarioSpec(horizon_s=0.05, impulse_max_n=1.0, impulse_duration_s=0.025, include_paper=False)
     force = np.asarray(sample_scenarios(spec, jax.random.key(0), 64).force[:, :, 0])
@@ -183,6 +202,9 @@ def test_an_overflow_at_a_corner_is_refused():
     MCConfig(controller="dfs", method="zoh", beam=big)
     with pytest.raises(ValueError, match=r"\(E x1.5, .*youngs_modulus_pa must be finite; got inf"):
         MCConfig(controller="dfs", method="zoh", beam=big, scenarios=ScenarioSpec(youngs_modulus_rel=0.5))
+    # the heaviest payload is a corner too: 1e30 kg makes a plant that is not finite
+    with pytest.raises(ValueError, match=r"payload \+1e\+30 kg"):
+        check_plants(ScenarioSpec(payload_max_kg=1e30), BeamParams(), 2, "zoh")
 
 
 def test_the_fastest_mode_of_any_drawn_arm_is_at_a_corner():
@@ -226,6 +248,9 @@ def test_sample_scenarios_and_initial_condition_name_bad_inputs():
         initial_condition([float("nan")] + [0.0] * 5, 10)  # refused only later, by rollout
     with pytest.raises(ValueError, match=r"dtype must be a floating dtype \(jnp.float32, jnp.float64\); got int32"):
         initial_condition([0.0] * 6, 10, dtype=jnp.int32)
+    for x0 in (np.zeros((2, 6)), 0.0):  # one state: a batch of them or a number is refused
+        with pytest.raises(ValueError, match=r"x0 must have shape \(n_x,\)"):
+            initial_condition(x0, 10)
     sc = initial_condition([0, 1, 0, 0, 0, 0], 10)
     assert sc.x0.dtype == jnp.zeros(()).dtype and sc.x0.tolist() == [0, 1, 0, 0, 0, 0]
     assert initial_condition(np.zeros(6, np.float32), 10).x0.dtype == jnp.float32  # a float x0 keeps its dtype
@@ -282,6 +307,8 @@ def test_pad_batch_repeats_the_last_scenario_and_refuses_what_is_not_a_batch():
         pad_batch({"a": jnp.ones(3), "b": jnp.ones(4)}, 2)
     with pytest.raises(ValueError, match=r"got leading sizes \[None\]"):
         pad_batch(jnp.ones(()), 2)
+    with pytest.raises(ValueError, match="batch must hold scenarios"):  # as its docstring says: no scenarios, nothing to repeat
+        pad_batch({"a": jnp.ones((0, 3)), "b": jnp.ones((0,))}, 2)
 
 
 def test_each_factor_of_a_perturbation_scales_its_own_field():
@@ -334,6 +361,13 @@ def test_initial_state_components_are_drawn_independently():
     x0 = draw(SPEC).x0[:, [0, 1, 2, 4, 5]]  # theta, q1, q2, q1_dot, q2_dot (theta_dot is 0)
     corr = np.corrcoef(x0.T)
     assert np.max(np.abs(corr - np.eye(5))) < 0.1
+    # nor any value of one draw among another's: a key reused for another shape gives the hub
+    # angle the first values of the q's draw (scenario 0's theta(0) / std is its q1(0) / std),
+    # which shifted by one scenario correlates with nothing. Standardised, 64 scenarios' 320
+    # normal values lie more than 1e-6 apart (a chance closer pair: about 320^2 x 0.28e-6 / 2)
+    few = jax.tree.map(np.asarray, sample_scenarios(SPEC, jax.random.key(1), 64, dtype=np.float64)).x0
+    z = np.concatenate([few[:, 0] / 0.01, few[:, 1:3].ravel() / 2e-3, few[:, 4:6].ravel() / 3e-5])
+    assert np.min(np.diff(np.sort(z))) > 1e-6
 
 
 def _pulse_and_step():
