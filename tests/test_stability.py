@@ -146,6 +146,61 @@ def test_wrong_sign_gain_has_a_real_crossing_through_zero(plant, crit):
     assert crit[PAPER_K].zero_crossing is None  # k > 0: the root at 0 stays simple
 
 
+def test_the_first_destabilising_delay_can_be_the_real_crossing_through_zero(plant):
+    """k = -0.5: no imaginary-axis crossing destabilises the loop, the real root through s = 0
+    does (the docstring: "an imaginary-axis crossing or the real crossing through 0"); the
+    rightmost root is real and changes sign there."""
+    first = st.first_destabilising_delay(-0.5, 2, plant=plant)
+    assert math.isfinite(first)
+    below, above = (complex(st.rightmost_root(plant, -0.5, factor * first, 32)) for factor in (0.99, 1.01))
+    assert below.real < 0 < above.real and abs(above.imag) < 1e-9
+
+
+def _g(plant, s):
+    """G(s) = c (sI - A)^{-1} b of each s, by NumPy solves."""
+    A, b, c = (np.asarray(m, float) for m in (plant.A, plant.B[:, 0], plant.C[0]))
+    s = np.atleast_1d(s).astype(complex)
+    x = np.linalg.solve(s[:, None, None] * np.eye(A.shape[0]) - A, np.broadcast_to(b.astype(complex), (s.size, b.size))[..., None])
+    return x[..., 0] @ c
+
+
+@pytest.mark.parametrize("k", [PAPER_K, -55.0, -0.5])
+def test_the_crossings_are_the_sign_changes_of_one_plus_two_k_re_g(plant, k):
+    """|P(jw)| = |Q(jw)| where 1 + 2 k Re G(jw) = 0 (P = a + k N, Q = -k N, G = N / a):
+    every sign change of it on a scan of 400,001 frequencies from 0.01 to 1e5 rad/s, and
+    nothing else (at k = -0.5 F has complex roots near 83 and 228 rad/s: no crossings)."""
+    w = np.geomspace(1e-2, 1e5, 400_001)
+    h = 1 + 2 * k * _g(plant, 1j * w).real
+    changes = np.nonzero(np.sign(h[:-1]) != np.sign(h[1:]))[0]
+    found = np.asarray(st.crossing_frequencies(plant, k))
+    assert found.size == changes.size, (found, w[changes])
+    assert np.all((w[changes] <= found * (1 + 1e-9)) & (found <= w[changes + 1] * (1 + 1e-9)))
+
+
+def test_df_dw_is_the_derivative_of_f(plant, crit):
+    """dF/dw of F(w) = |P(jw)|^2 - |Q(jw)|^2 (its sign gives each crossing's direction), against
+    a central difference of F built from NumPy determinants."""
+    A, b, c = (np.asarray(m, float) for m in (plant.A, plant.B[:, 0], plant.C[0]))
+
+    def F(k, w):
+        P = np.linalg.det(1j * w * np.eye(A.shape[0]) - A + k * np.outer(b, c))
+        return abs(P) ** 2 - abs(np.linalg.det(1j * w * np.eye(A.shape[0]) - A) - P) ** 2
+
+    for k, result in crit.items():
+        for crossing in result.crossings:
+            h = 1e-5 * crossing.omega
+            np.testing.assert_allclose(crossing.dF_dw, (F(k, crossing.omega + h) - F(k, crossing.omega - h)) / (2 * h), rtol=1e-4, err_msg=f"k = {k}")
+
+
+def test_more_than_a_million_critical_delays_of_a_crossing_are_refused(plant):
+    """The documented cap: the top crossing at k = 55 repeats every 2 pi / w; 2e4 s of delay
+    would hold about 1.4e6 of them."""
+    top = float(np.max(st.crossing_frequencies(plant, PAPER_K)))
+    assert 1.1e6 < 2e4 * top / (2 * np.pi) < 1e7
+    with pytest.raises(ValueError, match=r"k = 55: the loop crosses the imaginary axis at 68.91 Hz, every 0.0145 s of delay, which is 1.38e\+06 critical delays up to 20000 s \(at most 1e\+06 are listed\)"):
+        st.critical_delays(plant, PAPER_K, 2e4)
+
+
 # ---------------------------------------------------------------------------------------------
 # 2. Rightmost root of the delay equation
 
@@ -185,6 +240,30 @@ def test_rightmost_root_converged_doubles_until_settled():
     assert (capped.n_cheb, capped.converged) == (16, False) and capped.change > st.ROOT_RTOL * (1 + abs(capped.root))
     with pytest.raises(ValueError, match=r"max_n_cheb must be an integer >= 64 \(Chebyshev intervals, twice n_cheb at least\); got 40"):
         st.rightmost_root_converged(stiff, k, tau, 32, max_n_cheb=40)
+
+
+def test_rightmost_root_converged_stops_at_the_first_change_within_root_rtol(plant):
+    """The documented doubling, followed here from 8 intervals: stop at the first doubling whose
+    root moved by at most ROOT_RTOL (1e-8) x (1 + |root|). At k = 20, tau = 10 ms, 8 -> 16 moves
+    it by about 3e-7 relative, 16 -> 32 by round-off: 32."""
+    assert st.ROOT_RTOL == 1e-8
+    k, tau = 20.0, 0.01
+    m, previous = 8, complex(st.rightmost_root(plant, k, tau, 8))
+    while True:
+        m, root = 2 * m, complex(st.rightmost_root(plant, k, tau, 2 * m))
+        if abs(root - previous) <= 1e-8 * (1 + abs(root)):
+            break
+        previous = root
+    found = st.rightmost_root_converged(plant, k, tau, 8)
+    assert found.converged and found.n_cheb == m == 32
+    np.testing.assert_allclose(found.change, abs(root - previous), rtol=1e-6, atol=1e-12)
+
+
+@pytest.mark.parametrize("k, tau", [(PAPER_K, 0.005), (PAPER_K, 0.02)])
+def test_rightmost_real_grid_is_the_real_part_of_the_rightmost_root(plant, k, tau):
+    """A real rightmost root (-9.34 /s at the paper's point) and an unstable pair (20 ms)."""
+    roots = np.asarray(st.characteristic_roots(plant, k, tau, 32))
+    np.testing.assert_allclose(np.asarray(st.rightmost_real_grid(plant, [k], [tau], 32))[0, 0], roots.real.max(), rtol=1e-9)
 
 
 def test_sampled_rate_approaches_the_continuous_rightmost_root(plant):
@@ -461,6 +540,9 @@ def test_the_matrices_check_their_gain_and_delay(plant):
         st.deflated_loop_matrix(dplant, PAPER_K, float("nan"), 5)
     with pytest.raises(ValueError, match="k must be finite"):
         st.deflated_loop_matrix(dplant, float("inf"), 5, 5)
+    for matrix in (st.deflated_loop_matrix, st.sampled_loop_matrix, st.spectral_radius):  # less than one sample
+        with pytest.raises(ValueError, match=r"delay_steps must be a number of samples in \[1, n_hist = 4\] .*; got 0.5"):
+            matrix(dplant, PAPER_K, 0.5, 4)
     for tau in (0.0, -0.005, float("nan")):
         with pytest.raises(ValueError, match="tau_s must be finite and > 0"):
             st.generator_matrix(plant, PAPER_K, tau)
@@ -482,6 +564,14 @@ def test_grids_and_root_counts_name_bad_values(plant):
         (lambda: st.unstable_root_count(result, []), "tau_s must hold at least one delay"),
         (lambda: st.sampled_radius_grid(dplant, [PAPER_K], []), r"k_values and delay_steps must be non-empty 1-D arrays \(the grid's axes\); got shapes \(1,\), \(0,\)"),
         (lambda: st.stability_chart(plant, ["a"], [5]), r"k_values must be a real number or an array of real numbers; got \['a'\]"),
+        # each delay of a count in (0, tau_max_s]: below it no switch is counted, beyond it one may be missed
+        (lambda: st.unstable_root_count(result, [0.0]), r"tau_s must be in \(0, tau_max_s = 0.05\] s; got range \[0, 0\]"),
+        (lambda: st.unstable_root_count(result, [-0.01]), r"tau_s must be in \(0, tau_max_s = 0.05\] s"),
+        (lambda: st.unstable_root_count(result, [0.06]), r"tau_s must be in \(0, tau_max_s = 0.05\] s; got range \[0.06, 0.06\]"),
+        (lambda: st.rightmost_real_grid(plant, [PAPER_K], [0.0]), r"tau_s must be finite and > 0; got 0.0"),
+        (lambda: st.rightmost_real_grid(plant, [PAPER_K], [-0.005]), r"tau_s must be finite and > 0; got -0.005"),
+        (lambda: st.sampled_radius_grid(dplant, [PAPER_K, float("nan")], [5]), "k must be finite; got nan"),
+        (lambda: st.sampled_radius_grid(dplant, [PAPER_K, float("inf")], [5]), "k must be finite; got inf"),
     ):
         with pytest.raises(ValueError, match=match):
             call()
@@ -569,6 +659,23 @@ def test_report_writes_chart_and_json(tmp_path):
     assert float(st.spectral_radius(dplant, PAPER_K, 6)) < 1 <= float(st.spectral_radius(dplant, PAPER_K, 7))
     assert result["first_destabilising_delay_sampled_s"] == pytest.approx(7e-3, rel=1e-12) and 7e-3 < first
     assert result["first_destabilising_delay_sampled_tau_max_s"] == pytest.approx(0.012, rel=1e-12)
+
+
+def test_report_searches_beyond_its_chart_for_the_larger_models_first_delay(tmp_path):
+    """k = 10: the first destabilising delay (about 12 ms) lies beyond an 8 ms chart; the
+    more-modes figure is still the larger model's own, not 'none up to the chart's range'."""
+    result = stability_report.run(tmp_path, k=10.0, n_k=3, tau_max_s=0.008, n_cheb=16)
+    more, expected = result["first_destabilising_delay_more_modes"], st.first_destabilising_delay(10.0, 2 + stability_report.MORE_MODES)
+    assert expected > 0.008 and more["n_modes"] == 2 + stability_report.MORE_MODES and more["s"] == pytest.approx(expected, rel=1e-12)
+
+
+def test_the_charts_first_destabilising_delay_is_not_cut_at_its_range(plant):
+    """A chart of 1-3 ms at k = 55 still gives the first destabilising delay above it (7.3 ms),
+    where the continuous loop's rightmost root changes sign."""
+    first = float(st.stability_chart(plant, [PAPER_K], [1, 2, 3], 1e-3, continuous=False).first_destabilising_delay_s[0])
+    assert math.isfinite(first) and first > 0.003
+    below, above = (complex(st.rightmost_root(plant, PAPER_K, factor * first, 48)).real for factor in (0.99, 1.01))
+    assert below < 0 < above
 
 
 def test_an_interrupted_report_leaves_the_earlier_pair_of_files(tmp_path, monkeypatch):
