@@ -87,6 +87,8 @@ def _float32(call):
         # float64; a ZeroDivisionError at 1e-200 m long
         (lambda: _float32(lambda: modal_matrices(BeamParams(thickness_m=1e-30))), r"the 2-mode model's matrices must be finite, with each flexible mode's stiffness > 0, in float32; got inf, NaN or 0"),
         (lambda: modal_matrices(BeamParams(thickness_m=1e-120)), r"the 2-mode model's matrices must be finite, with each flexible mode's stiffness > 0, in float64; got inf, NaN or 0 for BeamParams\("),
+        # the same 0 stiffness with the damping given, so that no 0 / 0 frequency makes a NaN first
+        (lambda: modal_matrices(BeamParams(thickness_m=1e-110, rayleigh_alpha=0.0, rayleigh_beta=0.0)), r"the 2-mode model's matrices must be finite, with each flexible mode's stiffness > 0, in float64; got inf, NaN or 0"),
         (lambda: exact_natural_frequencies_hz(BeamParams(length_m=1e-200)), r"params: the arm's frequency equation must be finite in float64"),
         # JAX's TypeError on a string; argmax of an empty sequence
         (lambda: band_mask("abc", 10.0), r"freqs must be a real number or an array of real numbers; got 'abc'"),

@@ -41,12 +41,16 @@ def test_state_space_structure():
 
 
 def test_tip_force_generalised_input_matches_virtual_work():
-    """A static tip force on a hub held by a torque: the tip force input equals M^-1 [L, phi_i(L)]."""
+    """A static tip force on a hub held by a torque: the tip force input equals M^-1 [L, phi_i(L)].
+    The hub torque does work on theta alone: its input is M^-1 e_0 (the mass matrix's inverse
+    was once easy to leave out, which only the stability analysis noticed)."""
     params = BeamParams()
     p = make_plant(params, 2)
     from jaxflex import beam
 
     mats = beam.modal_matrices(params, 2)
+    np.testing.assert_array_equal(np.asarray(p.B[:3, 0]), 0.0)
+    np.testing.assert_allclose(np.asarray(p.B[3:, 0]), np.linalg.solve(np.asarray(mats.M), [1.0, 0.0, 0.0]), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(p.E[3:, 0]), np.linalg.solve(np.asarray(mats.M), np.asarray(mats.tip_force_input)), rtol=1e-12)
     np.testing.assert_allclose(np.abs(np.asarray(mats.tip_force_input)), [0.9, 2.0, 2.0], rtol=1e-12)
 
