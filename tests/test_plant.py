@@ -42,8 +42,8 @@ def test_state_space_structure():
 
 def test_tip_force_generalised_input_matches_virtual_work():
     """A static tip force on a hub held by a torque: the tip force input equals M^-1 [L, phi_i(L)].
-    The hub torque does work on theta alone: its input is M^-1 e_0 (the mass matrix's inverse
-    was once easy to leave out, which only the stability analysis noticed)."""
+    The hub torque does work on theta alone: its input is M^-1 e_0 (before this check, an input
+    without M^-1 failed only the stability analysis's tests)."""
     params = BeamParams()
     p = make_plant(params, 2)
     from jaxflex import beam

@@ -168,7 +168,8 @@ def _g(plant, s):
 def test_the_crossings_are_the_sign_changes_of_one_plus_two_k_re_g(plant, k):
     """|P(jw)| = |Q(jw)| where 1 + 2 k Re G(jw) = 0 (P = a + k N, Q = -k N, G = N / a):
     every sign change of it on a scan of 400,001 frequencies from 0.01 to 1e5 rad/s, and
-    nothing else (at k = -0.5 F has complex roots near 83 and 228 rad/s: no crossings)."""
+    nothing else (at k = -0.5 the polynomial in w^2 has complex roots, near 83 and 228 rad/s,
+    which are no crossings)."""
     w = np.geomspace(1e-2, 1e5, 400_001)
     h = 1 + 2 * k * _g(plant, 1j * w).real
     changes = np.nonzero(np.sign(h[:-1]) != np.sign(h[1:]))[0]
