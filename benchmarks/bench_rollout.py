@@ -11,7 +11,7 @@ Sections (``--section``, default all):
   the FLOP fraction.
 * ``sweep``: the paper's DFS+fuzzy controller (faithful centroid, ZOH, float32) forward over
   batch sizes 1 .. 131072 (while memory allows), the singleton and smooth variants and the
-  gradient at a few sizes.
+  gradient at a few sizes (over every parameter; ``--grad-wrt gains`` for the tuned gains).
 * ``matrix``: every controller x {rk4, zoh} x {float32, float64} x {forward, grad} at one
   batch size.
 * ``capacity``: DFS and DFS+fuzzy forward with delay buffers of 64 (``dfs()``'s default),
@@ -467,7 +467,7 @@ def _measure_or_skip(emit: Callable, cfg: Any) -> bool:
         return False
 
 
-def section_sweep(emit: Callable, runs: int, min_time: float, horizon: int, batches: tuple[int, ...], grad_batches: tuple[int, ...], variant_batches: tuple[int, ...], max_steps: float) -> None:
+def section_sweep(emit: Callable, runs: int, min_time: float, horizon: int, batches: tuple[int, ...], grad_batches: tuple[int, ...], variant_batches: tuple[int, ...], max_steps: float, grad_wrt: tuple[str, ...] = ("all",)) -> None:
     config = _config_maker(runs, min_time, horizon)
     for batch in batches:
         h = horizon if batch * horizon <= max_steps else max(int(max_steps // batch), 100)
@@ -480,7 +480,8 @@ def section_sweep(emit: Callable, runs: int, min_time: float, horizon: int, batc
         for batch in variant_batches:
             _measure_or_skip(emit, config(integrator=integrator, batch=batch))
     for batch in grad_batches:
-        _measure_or_skip(emit, config(batch=batch, mode="grad"))
+        for wrt in grad_wrt:
+            _measure_or_skip(emit, config(batch=batch, mode="grad", wrt=wrt))
 
 
 def section_matrix(emit: Callable, runs: int, min_time: float, horizon: int, batch: int, grad_batch: int) -> None:
@@ -727,11 +728,11 @@ def _cost_fit_line(r: dict[str, Any], rows: list[dict[str, Any]]) -> str:
 
 
 def _rollout_line(r: dict[str, Any], rows: list[dict[str, Any]]) -> str:
-    from jaxflex.bench import format_spread
+    from jaxflex.bench import format_spread, mode_label
 
     capacity = r.get("capacity", 64 if "dfs" in r["controller"] else None)  # rows from before the field: the default
     return (
-        f"| {r['controller']} | {r['defuzz'] or '-'} | {capacity or '-'} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {r['mode']} | "
+        f"| {r['controller']} | {r['defuzz'] or '-'} | {capacity or '-'} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['horizon']} | {mode_label(r)} | "
         f"{_fmt(r['steps_per_second'])} | {_fmt(r['steps_per_second_best'])} | {format_spread(r)} | {r['compile_s']:.2f} | {r['cpu_util']:.2f} |"
     )
 
@@ -850,6 +851,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--grad-batch", type=_count, default=4096, help="batch of the gradient rows of the matrix (default 4096; the ab section's gradient rows use 1024)")
     p.add_argument("--batches", type=_count, nargs="+", default=list(SWEEP_BATCHES), help="batch sizes of the sweep")
     p.add_argument("--grad-batches", type=_count, nargs="*", default=[1024, 4096, 16384], help="batch sizes of the gradient sweep (none: skip it)")
+    p.add_argument("--grad-wrt", nargs="+", choices=("all", "gains"), default=["all"], help="what the sweep's gradient rows differentiate: every controller parameter (all, the default) and/or the gains jaxflex tune tunes (gains: k, tau_s, k1-k3)")
     p.add_argument("--variant-batches", type=_count, nargs="*", default=list(VARIANT_BATCHES), help="batch sizes of the sweep's singleton, smooth and RK4 rows (none: skip them)")
     p.add_argument("--max-steps", type=float, default=MAX_SWEEP_STEPS, help=f"cap on batch * horizon of one sweep call; larger batches get a shorter horizon (default {MAX_SWEEP_STEPS:g})")
     p.add_argument("--short-horizon", type=_count, default=200, help="horizon of the per-step python-control and scikit-fuzzy baselines")
@@ -893,7 +895,7 @@ def main(argv: list[str] | None = None) -> int:
         elif section == "baselines":
             section_baselines(emit, args.runs, args.min_time, args.batch, args.horizon, args.short_horizon)
         elif section == "sweep":
-            section_sweep(emit, args.runs, args.min_time, args.horizon, tuple(args.batches), tuple(args.grad_batches), tuple(args.variant_batches), args.max_steps)
+            section_sweep(emit, args.runs, args.min_time, args.horizon, tuple(args.batches), tuple(args.grad_batches), tuple(args.variant_batches), args.max_steps, tuple(args.grad_wrt))
         elif section == "matrix":
             section_matrix(emit, args.runs, args.min_time, args.horizon, args.batch, args.grad_batch)
         elif section == "capacity":

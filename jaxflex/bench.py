@@ -6,8 +6,10 @@ horizon and a mode:
 
 * ``"forward"``: ``jit(rollout(..., output="metrics"))`` of the whole batch (one rollout of
   ``B`` scenarios, as the Monte Carlo runner and the tuner run them);
-* ``"grad"``: ``jit(value_and_grad)`` of the batch-mean tip ISE with respect to every
-  controller parameter (the whole parameter pytree), through the same rollout.
+* ``"grad"``: ``jit(value_and_grad)`` of the batch-mean tip ISE through the same rollout,
+  with respect to every controller parameter (``wrt="all"``: the whole parameter pytree,
+  20 values for DFS+fuzzy) or to the gains ``jaxflex tune`` tunes (``wrt="gains"``: k,
+  tau_s, k1-k3, ``controllers.registry.PARAMETERS``; the fuzzy set centres held).
 
 The scenarios of a batch differ in their initial state (random modal displacements and
 rates around the paper's) and share one tip-force sequence (a 0.5 N, 10 ms pulse at 0.1 s)
@@ -43,7 +45,7 @@ import numpy as np
 
 from jaxflex import beam, checks, fileio
 from jaxflex.controllers import by_name
-from jaxflex.controllers.registry import NAMES
+from jaxflex.controllers.registry import NAMES, PARAMETERS
 from jaxflex.plant import METHODS, discretize, make_plant
 from jaxflex.rollout import rollout
 from jaxflex.scenarios import Scenario
@@ -52,6 +54,7 @@ CONTROLLERS = NAMES
 DEFUZZ = ("centroid", "singleton", "smooth")  # the fuzzy part: faithful centroid, singleton, smooth
 DTYPES = ("float32", "float64")
 MODES = ("forward", "grad")
+WRT = ("all", "gains")  # what a gradient row differentiates: every parameter, or the tuned gains
 SMOOTH_TEMPERATURE = 0.02  # the smooth mode's temperature (the tuner's recommended range 0.01-0.05)
 DT = 1e-3  # s, the paper's 1 kHz
 DELAY_SAMPLES = 5  # the paper's tau = 5 ms at DT
@@ -73,6 +76,9 @@ class BenchConfig:
       batch: number of scenarios, >= 1.
       horizon: samples per scenario, >= 2.
       mode: ``"forward"`` or ``"grad"``.
+      wrt: with ``mode="grad"``, what is differentiated (``WRT``): ``"all"`` (every leaf of the
+        parameter pytree) or ``"gains"`` (the controller's ``PARAMETERS``, the values
+        ``jaxflex tune`` tunes; the fuzzy set centres held). Forward rows take ``"all"``.
       runs: timed calls after the first, >= 1.
       min_time_s: keep calling (after ``runs`` calls) until the timed calls add up to this
         many seconds, >= 0. A call at a small batch takes milliseconds, and a median over a
@@ -90,13 +96,14 @@ class BenchConfig:
     batch: int = 4096
     horizon: int = 1000
     mode: str = "forward"
+    wrt: str = "all"
     runs: int = 5
     capacity: int = 64
     min_time_s: float = 0.0
     unroll: int = 1
 
     def __post_init__(self) -> None:
-        for name, allowed in (("controller", CONTROLLERS), ("defuzz", DEFUZZ), ("integrator", METHODS), ("dtype", DTYPES), ("mode", MODES)):
+        for name, allowed in (("controller", CONTROLLERS), ("defuzz", DEFUZZ), ("integrator", METHODS), ("dtype", DTYPES), ("mode", MODES), ("wrt", WRT)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}; got {getattr(self, name)!r}")
         for name, low in (("batch", 1), ("horizon", 2), ("runs", 1), ("capacity", DELAY_SAMPLES), ("unroll", 1)):
@@ -104,6 +111,8 @@ class BenchConfig:
         object.__setattr__(self, "min_time_s", checks.number("min_time_s", self.min_time_s, unit="seconds"))
         if self.mode == "grad" and self.controller == "open_loop":
             raise ValueError("mode='grad' needs controller parameters; the open loop has none")
+        if self.mode == "forward" and self.wrt != "all":
+            raise ValueError(f"wrt={self.wrt!r} applies to mode='grad' only; a forward row differentiates nothing (leave wrt='all')")
 
     @property
     def has_fuzzy(self) -> bool:
@@ -155,7 +164,8 @@ def bench_inputs(batch: int, horizon: int, dtype: Any, seed: int = 0) -> tuple[j
 
 
 def make_benchmark(cfg: BenchConfig) -> tuple[Callable, tuple]:
-    """The jitted function of one configuration and its arguments (params, x0)."""
+    """The jitted function of one configuration and its arguments: ``(params, x0)``, or
+    ``(gains, params, x0)`` for a gradient with ``wrt="gains"`` (``gains`` a dict by name)."""
     dtype = jnp.dtype(cfg.dtype)
     plant = bench_plant(cfg.integrator, dtype)
     controller, params = controller_and_params(cfg.controller, cfg.defuzz, dtype, cfg.capacity)
@@ -177,8 +187,13 @@ def make_benchmark(cfg: BenchConfig) -> tuple[Callable, tuple]:
     def loss(params, x0):
         return jnp.mean(metrics(params, x0).tip_ise)
 
+    # What is differentiated comes first; the parameters (and their held leaves) and x0 follow.
+    if cfg.wrt == "all":
+        objective, lead = loss, (params,)
+    else:
+        objective, lead = (lambda gains, params, x0: loss(_with_gains(params, gains), x0)), (_gains(cfg.controller, params), params)
     if not sharded:
-        return jax.jit(jax.value_and_grad(loss)), (params, x0)
+        return jax.jit(jax.value_and_grad(objective)), (*lead, x0)
 
     # Data parallel: each device differentiates the mean over its own shard, then one psum.
     # Under plain jit with a sharded batch, the parameter cotangent is reduced over the batch
@@ -187,13 +202,29 @@ def make_benchmark(cfg: BenchConfig) -> tuple[Callable, tuple]:
     # which shard_map's varying-axes check would reject as carries that turn varying.
     n_dev = len(devices)
 
-    def local(params, x0):
-        value, grad = jax.value_and_grad(loss)(params, x0)
+    def local(*args):
+        value, grad = jax.value_and_grad(objective)(*args)
         return jax.lax.psum(value, "batch") / n_dev, jax.tree.map(lambda g: jax.lax.psum(g, "batch") / n_dev, grad)
 
     replicated = PartitionSpec()
-    fn = jax.shard_map(local, mesh=mesh, in_specs=(replicated, PartitionSpec("batch")), out_specs=(replicated, replicated), check_vma=False)
-    return jax.jit(fn), (params, x0)
+    fn = jax.shard_map(local, mesh=mesh, in_specs=(*(replicated for _ in lead), PartitionSpec("batch")), out_specs=(replicated, replicated), check_vma=False)
+    return jax.jit(fn), (*lead, x0)
+
+
+def _parts(params: Any) -> tuple[Any, ...]:
+    """The NamedTuples of a parameter pytree: one, or the pair of a combined controller."""
+    return (params,) if hasattr(params, "_fields") else tuple(params)
+
+
+def _gains(controller: str, params: Any) -> dict[str, jax.Array]:
+    """The gains of ``params`` that ``jaxflex tune`` tunes (``PARAMETERS[controller]``), by name."""
+    return {name: getattr(part, name) for part in _parts(params) for name in part._fields if name in PARAMETERS[controller]}
+
+
+def _with_gains(params: Any, gains: dict[str, jax.Array]) -> Any:
+    """``params`` with the named gains replaced, the other leaves as they are."""
+    parts = tuple(part._replace(**{name: value for name, value in gains.items() if name in part._fields}) for part in _parts(params))
+    return parts[0] if hasattr(params, "_fields") else parts
 
 
 def device_info() -> dict[str, Any]:
@@ -288,6 +319,8 @@ def measure(cfg: BenchConfig) -> dict[str, Any]:
         row["defuzz"] = None
     if "dfs" not in cfg.controller:
         row["capacity"] = None
+    if cfg.mode == "forward":
+        row["wrt"] = None
     row.update(timing)
     row["steps_per_second"] = steps / timing["median_s"]
     row["steps_per_second_best"] = steps / timing["min_s"]
@@ -300,12 +333,13 @@ def measure(cfg: BenchConfig) -> dict[str, Any]:
 def quick_configs() -> list[BenchConfig]:
     """The quick subset (under two minutes on 2 CPU cores): every controller and both
     integrators in float32 forward at batch 4096, the fuzzy defuzzifiers, float64 and the
-    gradient of the paper's DFS+fuzzy controller beside its forward pass at the same batch."""
+    gradients of the paper's DFS+fuzzy controller (every parameter, and the tuned gains) beside
+    its forward pass at the same batch."""
     quick = {"horizon": 500, "min_time_s": WINDOW_S}
     cfgs = [BenchConfig(controller=c, integrator=i, **quick) for c in CONTROLLERS for i in METHODS]
     cfgs += [BenchConfig(defuzz=d, **quick) for d in ("singleton", "smooth")]
     cfgs += [BenchConfig(dtype="float64", **quick)]
-    cfgs += [BenchConfig(batch=1024, **quick), BenchConfig(mode="grad", batch=1024, runs=3, **quick)]
+    cfgs += [BenchConfig(batch=1024, **quick)] + [BenchConfig(mode="grad", wrt=wrt, batch=1024, runs=3, **quick) for wrt in WRT]
     return cfgs
 
 
@@ -315,6 +349,11 @@ def format_spread(row: dict[str, Any]) -> str:
     if "steps_per_second_p10" not in row:
         return "-"
     return f"{row['steps_per_second_p10']:.3g}-{row['steps_per_second_p90']:.3g} ({row['runs']})"
+
+
+def mode_label(row: dict[str, Any]) -> str:
+    """A row's mode as the tables print it: ``"grad (gains)"`` for a gradient over the tuned gains."""
+    return f"{row['mode']} (gains)" if row.get("wrt") == "gains" else row["mode"]
 
 
 SAME_PROGRAM = ("controller", "defuzz", "integrator", "dtype", "batch", "horizon", "capacity", "unroll", "device", "n_devices")
@@ -331,18 +370,19 @@ def gradient_ratios(rows: Sequence[dict[str, Any]]) -> list[str]:
         forward = next((r for r in rows if r.get("mode") == "forward" and tuple(r.get(f) for f in SAME_PROGRAM) == key), None)
         if forward is not None:
             ratio = grad["steps_per_second"] / forward["steps_per_second"]
-            lines.append(f"value_and_grad {grad['controller']}/{grad['defuzz'] or '-'} {grad['integrator']} {grad['dtype']} B={grad['batch']}: {ratio:.1%} of the forward rate at the same batch")
+            over = f" over {', '.join(PARAMETERS[grad['controller']])}" if grad.get("wrt") == "gains" else ""
+            lines.append(f"value_and_grad{over} {grad['controller']}/{grad['defuzz'] or '-'} {grad['integrator']} {grad['dtype']} B={grad['batch']}: {ratio:.1%} of the forward rate at the same batch")
     return lines
 
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     """A plain-text table of benchmark rows."""
-    head = f"{'controller':<10} {'defuzz':<9} {'integ':<5} {'dtype':<7} {'batch':>6} {'mode':<7} {'steps/s':>10} {'p10-p90 (calls)':>23} {'compile s':>9} {'cpu util':>8}"
+    head = f"{'controller':<10} {'defuzz':<9} {'integ':<5} {'dtype':<7} {'batch':>6} {'mode':<12} {'steps/s':>10} {'p10-p90 (calls)':>23} {'compile s':>9} {'cpu util':>8}"
     lines = [head, "-" * len(head)]
     for r in rows:
         spread = format_spread(r)
         lines.append(
-            f"{r['controller']:<10} {r['defuzz'] or '-':<9} {r['integrator']:<5} {r['dtype']:<7} {r['batch']:>6} {r['mode']:<7} "
+            f"{r['controller']:<10} {r['defuzz'] or '-':<9} {r['integrator']:<5} {r['dtype']:<7} {r['batch']:>6} {mode_label(r):<12} "
             f"{r['steps_per_second']:>10.3g} {spread:>23} {r['compile_s']:>9.2f} {r['cpu_util']:>8.2f}"
         )
     lines += gradient_ratios(rows)
@@ -381,7 +421,7 @@ def run_bench(json_path: str | os.PathLike | None = None, quick: bool = True, *,
         row = measure(cfg)
         rows.append(row)
         if progress is not None:
-            progress(f"{cfg.controller}/{row['defuzz'] or '-'} {cfg.integrator} {cfg.dtype} B={cfg.batch} {cfg.mode}: {row['steps_per_second']:.3g} steps/s")
+            progress(f"{cfg.controller}/{row['defuzz'] or '-'} {cfg.integrator} {cfg.dtype} B={cfg.batch} {mode_label(row)}: {row['steps_per_second']:.3g} steps/s")
     if json_path is not None:  # at the end and atomically: an interrupted run leaves an earlier file whole
         fileio.write_text(json_path, "".join(json.dumps(fileio.to_jsonable(row), allow_nan=False) + "\n" for row in rows))
     if progress is not None:

@@ -4,6 +4,8 @@ the quick benchmark returns well-formed rows (tiny sizes; the throughput itself 
 
 import json
 import os
+import subprocess
+import sys
 import time
 
 import jax
@@ -216,6 +218,63 @@ def test_the_gradient_is_set_against_the_forward_rate_of_the_same_loop_and_batch
         assert any(c.mode == "forward" and all(getattr(c, f) == getattr(grad, f) for f in ("controller", "defuzz", "integrator", "dtype", "batch", "horizon", "capacity", "unroll")) for c in configs)
 
 
+def test_gradient_over_the_gains_is_the_full_gradient_restricted_to_them():
+    """wrt="gains" differentiates the values jaxflex tune tunes (k, tau_s, k1-k3) with the
+    fuzzy set centres held: the same value as wrt="all", the same derivatives for those
+    names, and a derivative a central difference confirms (float64)."""
+    with jax.enable_x64(True):
+        base = dict(controller="dfs+fuzzy", dtype="float64", batch=3, horizon=60, mode="grad")
+        fn_all, args_all = make_benchmark(BenchConfig(**base))
+        fn_gains, args_gains = make_benchmark(BenchConfig(**base, wrt="gains"))
+        value_all, grad_all = fn_all(*args_all)
+        value_gains, grad_gains = fn_gains(*args_gains)
+        assert sorted(grad_gains) == ["k", "k1", "k2", "k3", "tau_s"]
+        assert float(value_gains) == pytest.approx(float(value_all), rel=1e-14)
+        dfs_grad, fuzzy_grad = grad_all
+        for name, g in grad_gains.items():
+            expected = getattr(dfs_grad if name in ("k", "tau_s") else fuzzy_grad, name)
+            np.testing.assert_allclose(float(g), float(expected), rtol=1e-12, atol=0)
+        assert float(grad_gains["k2"]) != 0.0
+        gains, params, x0 = args_gains
+        h = 1e-6 * float(gains["k2"])
+        shifted = [float(fn_gains({**gains, "k2": gains["k2"] + d}, params, x0)[0]) for d in (h, -h)]
+        np.testing.assert_allclose((shifted[0] - shifted[1]) / (2 * h), float(grad_gains["k2"]), rtol=1e-5)
+        row = run_bench(None, configs=[BenchConfig(**{**base, "runs": 1}, wrt="gains"), BenchConfig(**{**base, "runs": 1, "mode": "forward"})], progress=None)
+    assert [r["wrt"] for r in row] == ["gains", None]
+    assert "value_and_grad over k, tau_s, k1, k2, k3 dfs+fuzzy/centroid zoh float64 B=3:" in format_table(row)
+    assert "grad (gains)" in format_table(row).splitlines()[2]
+
+
+def test_gradients_sharded_over_two_devices_equal_one_device():
+    """With a device per core the benchmark differentiates each shard and sums the shards'
+    gradients (shard_map, one psum): in fresh processes with 1 and 2 CPU devices, both
+    gradient programs (every parameter, and the gains) give the same value and gradient
+    (float64)."""
+    script = (
+        "import jax, json, sys\n"
+        "jax.config.update('jax_num_cpu_devices', int(sys.argv[1]))\n"
+        "jax.config.update('jax_enable_x64', True)\n"
+        "from jaxflex.bench import BenchConfig, make_benchmark\n"
+        "out = {'devices': jax.device_count()}\n"
+        "for wrt in ('all', 'gains'):\n"
+        "    fn, args = make_benchmark(BenchConfig(controller='dfs+fuzzy', dtype='float64', batch=4, horizon=60, mode='grad', wrt=wrt))\n"
+        "    value, grad = fn(*args)\n"
+        "    out[wrt] = [float(value)] + [float(x) for g in jax.tree.leaves(grad) for x in g.ravel()]\n"
+        "print(json.dumps(out))\n"
+    )
+    runs = {}
+    for devices in (1, 2):
+        done = subprocess.run([sys.executable, "-c", script, str(devices)], capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
+        assert done.returncode == 0, done.stderr
+        runs[devices] = json.loads(done.stdout.splitlines()[-1])
+        assert runs[devices]["devices"] == devices
+    for wrt, size in (("all", 21), ("gains", 6)):  # the value and 20 or 5 derivatives
+        assert len(runs[1][wrt]) == len(runs[2][wrt]) == size
+        np.testing.assert_allclose(runs[2][wrt], runs[1][wrt], rtol=1e-12, atol=1e-30, err_msg=wrt)
+    # the gains' leaves come by name (k, k1, k2, k3, tau_s); the full pytree's lead with k, tau_s, k1-k3
+    np.testing.assert_allclose(runs[1]["gains"], [runs[1]["all"][i] for i in (0, 1, 3, 4, 5, 2)], rtol=1e-12)
+
+
 def test_interrupted_bench_leaves_an_earlier_json_file_whole(monkeypatch, tmp_path):
     from jaxflex import bench
 
@@ -242,6 +301,10 @@ def test_bench_config_validation():
         BenchConfig(batch=0)
     with pytest.raises(ValueError, match="open loop has none"):
         BenchConfig(controller="open_loop", mode="grad")
+    with pytest.raises(ValueError, match=r"wrt must be one of \('all', 'gains'\); got 'centres'"):
+        BenchConfig(mode="grad", wrt="centres")
+    with pytest.raises(ValueError, match="wrt='gains' applies to mode='grad' only"):
+        BenchConfig(wrt="gains")
     with pytest.raises(ValueError, match="capacity must be an integer >= 5"):
         BenchConfig(capacity=4)  # shorter than the benchmarked 5-sample delay
     with pytest.raises(ValueError, match="unroll must be an integer >= 1; got 0"):
