@@ -78,7 +78,8 @@ class BenchConfig:
       mode: ``"forward"`` or ``"grad"``.
       wrt: with ``mode="grad"``, what is differentiated (``WRT``): ``"all"`` (every leaf of the
         parameter pytree) or ``"gains"`` (the controller's ``PARAMETERS``, the values
-        ``jaxflex tune`` tunes; the fuzzy set centres held). Forward rows take ``"all"``.
+        ``jaxflex tune`` tunes; the fuzzy set centres held). Forward rows keep ``"all"``, and
+        their JSON rows record ``wrt`` as null.
       runs: timed calls after the first, >= 1.
       min_time_s: keep calling (after ``runs`` calls) until the timed calls add up to this
         many seconds, >= 0. A call at a small batch takes milliseconds, and a median over a

@@ -239,10 +239,10 @@ def test_gradient_over_the_gains_is_the_full_gradient_restricted_to_them():
         h = 1e-6 * float(gains["k2"])
         shifted = [float(fn_gains({**gains, "k2": gains["k2"] + d}, params, x0)[0]) for d in (h, -h)]
         np.testing.assert_allclose((shifted[0] - shifted[1]) / (2 * h), float(grad_gains["k2"]), rtol=1e-5)
-        row = run_bench(None, configs=[BenchConfig(**{**base, "runs": 1}, wrt="gains"), BenchConfig(**{**base, "runs": 1, "mode": "forward"})], progress=None)
-    assert [r["wrt"] for r in row] == ["gains", None]
-    assert "value_and_grad over k, tau_s, k1, k2, k3 dfs+fuzzy/centroid zoh float64 B=3:" in format_table(row)
-    assert "grad (gains)" in format_table(row).splitlines()[2]
+        rows = run_bench(None, configs=[BenchConfig(**{**base, "runs": 1}, wrt="gains"), BenchConfig(**{**base, "runs": 1, "mode": "forward"})], progress=None)
+    assert [r["wrt"] for r in rows] == ["gains", None]
+    assert "value_and_grad over k, tau_s, k1, k2, k3 dfs+fuzzy/centroid zoh float64 B=3:" in format_table(rows)
+    assert "grad (gains)" in format_table(rows).splitlines()[2]
 
 
 def test_gradients_sharded_over_two_devices_equal_one_device():
