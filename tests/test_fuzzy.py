@@ -265,6 +265,10 @@ def test_controller_step_jit_vmap_and_clipping():
     # Restoring: a negative angle at rest gives a positive torque.
     _, u_neg = controller.step(params, (), jnp.array([-0.4, 0.0]))
     assert float(u_neg[0]) > 0
+    # k3 scales the torque with its sign: check() takes a negative k3, and u = k3 F flips
+    controller.check(params._replace(k3=-2.5))
+    _, u_flipped = controller.step(params._replace(k3=-2.5), (), y)
+    np.testing.assert_allclose(u_flipped[0], -u[0], rtol=0, atol=ATOL_ROUND)
 
     ys = jnp.asarray(np.random.default_rng(4).uniform(-1.5, 1.5, size=(16, 2)))
     step = lambda y: controller.step(params, (), y)[1]  # noqa: E731
@@ -466,6 +470,12 @@ def test_validation():
         check(fuzzy_params()._replace(velocity_centres=jnp.array([-1.0, 0.0, 1.0])))
     with pytest.raises(ValueError, match=r"velocity_centres .*finite"):
         check(fuzzy_params()._replace(velocity_centres=jnp.array([-1.0, -0.5, 0.0, 0.5, jnp.nan])))
+    # an infinite outer centre still increases (np.diff gives inf > 0): refused as not finite
+    with pytest.raises(ValueError, match=r"torque_centres .*finite"):
+        check(fuzzy_params()._replace(torque_centres=jnp.array([-1.0, -0.5, 0.0, 0.5, jnp.inf])))
+    for centres in ((-np.inf, -0.5, 0.0, 0.5, 1.0), (-1.0, -0.5, 0.0, 0.5, np.inf)):
+        with pytest.raises(ValueError, match=r"centres .*finite"):
+            fuzzy_params(centres=centres)
     # a string is named, whether NumPy could read it as a number or not
     with pytest.raises(ValueError, match=r"k1 must be a real number; got 'a'"):
         fuzzy_params("a")
@@ -520,6 +530,13 @@ def test_float32_preserved(defuzz):
     np.testing.assert_allclose(float(u[0]), float(u64[0]), rtol=0, atol=ATOL_F32)
     f = fuzzy_surface(params32, jnp.float32(0.3), jnp.float32(-0.2), defuzz=defuzz)
     assert f.dtype == jnp.float32
+    # float32 centres with float64 inputs compute in float64, the result type of the two (the
+    # paper's centres are exact in float32, so the float64 centres' surface is the reference)
+    e, e_dot = jnp.float64(0.123456789), jnp.float64(-0.0372)
+    mixed = fuzzy_surface(params32, e, e_dot, defuzz=defuzz)
+    assert mixed.dtype == jnp.float64
+    np.testing.assert_allclose(mixed, fuzzy_surface(fuzzy_params(), e, e_dot, defuzz=defuzz), rtol=0, atol=ATOL_ROUND)
+    assert abs(float(mixed) - float(f)) > 0  # another point than the float32 one above
     assert isinstance(params32, FuzzyParams)
 
 

@@ -289,6 +289,10 @@ def test_a_signal_that_is_not_numbers_is_refused_by_name():
     with pytest.raises(ValueError, match=r"x must be a real number or an array of real numbers"):
         welch(np.ones(300, bool), 1000.0)
     np.testing.assert_allclose(ise([1, 2], 1e-3), 5e-3)  # integers are numbers
+    # read in JAX's default float (float64 here): 2**24 + 1 has no float32
+    big = np.array([16777217, 3, -5], np.int64)
+    assert iae(big, 1.0).dtype == jnp.result_type(float) == jnp.float64
+    assert float(iae(big, 1.0)) == 16777217 + 3 + 5
 
 
 def test_an_empty_record_is_refused_by_name():

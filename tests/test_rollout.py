@@ -557,6 +557,29 @@ def test_running_metrics_equal_trajectory_metrics(plant2, controller, params):
     assert 0 < expected < 1.5
     np.testing.assert_allclose(m.peak_abs_state, np.abs(np.asarray(traj.x)).max(), rtol=1e-12)
     assert not bool(m.diverged)
+    # the running settling time reads the band it is given, not the default 2 %
+    for band in (0.25, 0.005):
+        outside = np.nonzero(np.abs(tip) > band * np.abs(tip).max())[0]
+        banded = np.inf if outside[-1] == steps - 1 else (outside[-1] + 1) * dt
+        assert banded != expected
+        m_band = jf.rollout(plant2, controller, params, sc, output="metrics", mode_freqs_hz=freqs, settling_band=band)
+        np.testing.assert_allclose(m_band.settling_time_s, banded, rtol=1e-12)
+
+
+def test_peak_abs_state_covers_samples_0_to_T_minus_1(plant2):
+    """The metrics cover the samples k = 0..T-1 of the trajectory: over one sample the state's
+    peak is the initial state's, not the state after it (which the trajectory does not hold)."""
+    x0 = paper_scenario(plant2).x0
+    for steps in (1, 3):
+        sc = Scenario(x0, jnp.zeros((steps, 1)), jnp.zeros((steps, 2)))
+        traj = jf.rollout(plant2, pd(), PDParams(5.0, 0.5), sc)
+        m = jf.rollout(plant2, pd(), PDParams(5.0, 0.5), sc, output="metrics")
+        np.testing.assert_allclose(m.peak_abs_state, np.abs(np.asarray(traj.x)).max(), rtol=1e-14)
+    assert float(m.peak_abs_state) > 0
+    one = jf.rollout(plant2, pd(), PDParams(5.0, 0.5), Scenario(x0, jnp.zeros((1, 1)), jnp.zeros((1, 2))), output="metrics")
+    assert float(one.peak_abs_state) == float(np.abs(np.asarray(x0)).max())
+    x1 = np.asarray(plant2.Ad) @ np.asarray(x0)  # the state after the one sample (u = 0 at rest)
+    assert np.abs(x1).max() != np.abs(np.asarray(x0)).max()
 
 
 def test_settling_time_at_the_two_ends(plant2):
@@ -662,6 +685,25 @@ def test_negative_or_infinite_mode_frequencies_are_refused(plant2, freqs):
     sc = paper_scenario(plant2, horizon_s=0.01)
     with pytest.raises(ValueError, match="mode_freqs_hz must be finite frequencies >= 0"):
         jf.rollout(plant2, open_loop(), OpenLoopParams(), sc, output="metrics", mode_freqs_hz=freqs)
+
+
+def test_a_mode_frequency_at_nyquist_is_refused_and_one_just_below_runs(plant2):
+    """At the Nyquist frequency (500 Hz at 1 ms) a DFT bin reads an alias: refused there, not
+    only above it."""
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    with pytest.raises(ValueError, match=r"mode_freqs_hz must be below the Nyquist frequency, 500 Hz"):
+        jf.rollout(plant2, open_loop(), OpenLoopParams(), sc, output="metrics", mode_freqs_hz=[13.3, 500.0])
+    m = jf.rollout(plant2, open_loop(), OpenLoopParams(), sc, output="metrics", mode_freqs_hz=[13.3, np.nextafter(500.0, 0.0)])
+    assert m.modal_energy.shape == (2,)
+
+
+@pytest.mark.parametrize("name", ["Bd", "Ed", "C", "Cz"])
+def test_plant_matrices_of_another_shape_are_refused_by_name(plant2, name):
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    matrix = getattr(plant2, name)
+    bad = plant2._replace(**{name: jnp.concatenate([matrix, matrix], axis=1)})
+    with pytest.raises(ValueError, match=rf"plant\.{name} must have shape \({matrix.shape[0]}, {matrix.shape[1]}\) to match Ad \(6, 6\); got \({matrix.shape[0]}, {2 * matrix.shape[1]}\)"):
+        jf.rollout(bad, open_loop(), OpenLoopParams(), sc, output="metrics")
 
 
 def test_a_sample_time_a_tenth_of_a_percent_off_is_another_dt():
