@@ -436,3 +436,129 @@ def test_region_reduction_of_a_nan_or_zero_spectrum():
     assert np.isnan(nan.db[0]) and np.isnan(nan.f_closed_hz[0]) and not nan.is_peak[0]
     zero = region_reduction_db(freqs, psd_open, np.zeros(freqs.shape), [13.0])
     assert np.isinf(zero.db[0]) and not zero.is_peak[0]
+
+
+def _trend_noise(n=400, seed=3):
+    t = np.arange(n) / FS
+    return np.random.default_rng(seed).standard_normal(n) + 0.7 + 3.0 * t
+
+
+def test_linear_detrend_with_one_sample_segments_matches_scipy():
+    """`nperseg` = 1 with linear detrend: each one-sample segment's residual is 0 (scipy
+    gives 0 up to roundoff); dividing by <t, t> = 0 gave NaN."""
+    x = _trend_noise(50)
+    f, p = welch(x, FS, window="hann", nperseg=1, noverlap=0, detrend="linear")
+    f_ref, p_ref = scipy.signal.welch(x, FS, window="hann", nperseg=1, noverlap=0, detrend="linear", axis=0)
+    np.testing.assert_allclose(f, f_ref)
+    assert np.all(np.isfinite(p))
+    np.testing.assert_allclose(p, p_ref, atol=1e-20)
+
+
+def test_integer_signal_is_computed_in_the_default_float():
+    """An integer x is computed in JAX's default float (float64 under x64, as these
+    tests run), matching scipy to float64 precision, not in float32."""
+    x = (np.random.default_rng(4).integers(-1000, 1000, 512)).astype(np.int64)
+    f, p = welch(x, FS, nperseg=128)
+    assert p.dtype == jnp.result_type(float) == jnp.float64
+    _, p_ref = scipy.signal.welch(x.astype(np.float64), FS, nperseg=128, axis=0)
+    np.testing.assert_allclose(p, p_ref, rtol=1e-10, atol=1e-12 * p_ref.max())
+
+
+def test_a_traced_complex_signal_is_refused_by_name():
+    """A complex x under jit (the eager real_array check cannot see it) is refused, not
+    silently cast to its real part."""
+    with pytest.raises(ValueError, match="real signal"):
+        jax.jit(lambda x: welch(x, FS, nperseg=8))(jnp.ones(16) + 1j)
+
+
+@pytest.mark.parametrize("kw", [{"noverlap": 10}, {"detrend": "linear"}, {"window": "boxcar"}])
+def test_settings_with_any_changed_keyword_is_refused(kw):
+    """`settings=` together with any of the four keywords changed from its default is
+    refused (the docstring's contract); a dropped noverlap comparison let noverlap=10 be
+    silently ignored."""
+    s = PSDSettings(window="hann", nperseg=64, noverlap=None, detrend="constant")
+    with pytest.raises(ValueError, match="not both"):
+        welch(_trend_noise(), FS, settings=s, **kw)
+
+
+def test_a_mode_at_zero_hz_is_refused():
+    """`mode_freqs_hz` must be > 0: a 0 Hz 'mode' has a zero-width band (only the DC bin) and
+    no region; it is refused by name, not read at DC."""
+    freqs = np.arange(0.0, 101.0)
+    psd = 1.0 / (1 + (freqs - 13.0) ** 2) + 1e-9
+    for fn in (vibration_reduction_db, region_reduction_db):
+        with pytest.raises(ValueError, match=r"mode_freqs_hz must be finite and > 0"):
+            fn(freqs, psd, psd / 2, [0.0, 13.0])
+
+
+def _region_oracle(freqs, psd_closed, modes):
+    """The documented regions and peak test, in NumPy: [f1/2, sqrt(f1 f2)), ..., [.., 2 fn);
+    the lowest-index highest bin; a peak when > 0, not the first or last bin of the spectrum,
+    and at least both its neighbours."""
+    m = np.asarray(modes)
+    edges = np.concatenate([m[:1] / 2, np.sqrt(m[:-1] * m[1:]), m[-1:] * 2])
+    out = []
+    for i in range(len(m)):
+        inside = np.flatnonzero((freqs >= edges[i]) & (freqs < edges[i + 1]))
+        top = inside[np.argmax(psd_closed[inside])]
+        peak = 0 < top < len(freqs) - 1 and psd_closed[top] > 0 and psd_closed[top] >= psd_closed[top - 1] and psd_closed[top] >= psd_closed[top + 1]
+        out.append((freqs[top], bool(peak)))
+    return out
+
+
+@pytest.mark.parametrize("case", ["plateau_across_lower_edge", "first_bin", "last_bin"])
+def test_region_peak_test_at_plateaus_and_spectrum_ends(case):
+    """A highest bin equal to the one below it, just outside the region, is still 'at least
+    both neighbours'; the spectrum's first bin is never a peak, nor is its last."""
+    modes = [13.0, 36.0]
+    if case == "plateau_across_lower_edge":  # mode 2's region starts at sqrt(13 * 36) = 21.6 Hz
+        freqs = np.arange(0.0, 101.0)
+        psd_closed = np.full(freqs.shape, 1e-9)
+        psd_closed[21] = psd_closed[22] = 1e-3
+    elif case == "first_bin":  # a spectrum starting inside mode 1's region, falling from its first bin
+        freqs = np.arange(10.0, 101.0)
+        psd_closed = 1e-3 / (1 + (freqs - 2.0) ** 2) + 1e-12
+    else:  # a spectrum ending inside mode 2's region, rising to its last bin
+        freqs = np.arange(0.0, 60.0)
+        psd_closed = 1e-3 / (1 + ((freqs - 80.0) / 3) ** 2) + 1e-12
+    psd_open = sum(1.0 / (1 + (freqs - f) ** 2) for f in modes) + 1e-9
+    region = region_reduction_db(freqs, psd_open, psd_closed, modes)
+    want = _region_oracle(freqs, psd_closed, modes)
+    np.testing.assert_array_equal(region.f_closed_hz, [w[0] for w in want])
+    np.testing.assert_array_equal(np.asarray(region.is_peak), [w[1] for w in want])
+
+
+def test_equal_mode_frequencies_are_refused():
+    """Mode frequencies must be strictly increasing: two equal modes (an empty region between them) are refused."""
+    freqs = np.arange(0.0, 101.0)
+    psd = 1.0 / (1 + (freqs - 13.0) ** 2) + 1e-9
+    with pytest.raises(ValueError, match="strictly increasing"):
+        region_reduction_db(freqs, psd, psd / 2, [13.0, 13.0])
+
+
+def test_empty_bins_are_refused_by_name():
+    """An empty freqs/psd is refused by name as 'a non-empty 1-D array'."""
+    with pytest.raises(ValueError, match="non-empty 1-D array"):
+        band_mask(np.array([]), 10.0)
+    with pytest.raises(ValueError, match="non-empty 1-D array"):
+        band_peak(np.array([]), np.array([]), 10.0)
+
+
+def test_band_peak_refuses_psd_of_another_length():
+    """A psd whose length is not freqs' is refused by name (a length-1 psd broadcast
+    silently and gave the first in-band bin)."""
+    freqs = np.arange(0.0, 50.0)
+    for psd in (np.ones(1), np.ones(49)):
+        with pytest.raises(ValueError, match=r"freqs and psd must both have shape \[F\]"):
+            band_peak(freqs, psd, 10.0)
+
+
+def test_to_dict_nfft_is_the_fft_length_welch_uses():
+    """To_dict's nfft is the FFT length behind welch's frequency grid: F = nfft // 2 + 1
+    bins spaced fs / nfft (as scipy.signal.welch with that nfft gives them)."""
+    for nperseg in (64, 75):
+        s = PSDSettings(nperseg=nperseg)
+        d = s.to_dict()
+        f, _ = welch(_trend_noise(), FS, settings=s)
+        f_ref, _ = scipy.signal.welch(_trend_noise(), FS, nperseg=nperseg, nfft=d["nfft"])
+        np.testing.assert_allclose(f, f_ref, rtol=1e-12)
