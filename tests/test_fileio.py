@@ -51,6 +51,21 @@ def test_atomic_writes_temporary_is_held_against_a_concurrent_sweep(tmp_path):
     assert (tmp_path / "out.txt").read_text() == "data"
 
 
+@pytest.mark.skipif(fileio.fcntl is None, reason="POSIX locks")
+def test_replace_outputs_stage_is_held_against_a_concurrent_sweep(tmp_path):
+    """The staging folder of replace_outputs is locked while the run writes into it: another
+    writer's sweep leaves it, even when it is older than the sweep's minimum age (figures
+    drawn for minutes), and the outputs arrive."""
+    with fileio.replace_outputs(tmp_path, ["r.json"]) as stage:
+        with open(os.path.join(stage, "r.json"), "w") as f:
+            f.write("{}")
+        past = time.time() - 3600
+        os.utime(stage, (past, past))
+        fileio.sweep_stale(tmp_path)  # another writer's sweep, mid-run
+        assert os.path.isdir(stage)
+    assert (tmp_path / "r.json").read_text() == "{}"
+
+
 def test_sweep_leaves_old_files_that_are_not_temporaries(tmp_path):
     """The sweep removes only .tmp-* entries: an old user file (not held by anyone) in the
     folder written into is kept."""
