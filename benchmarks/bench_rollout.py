@@ -2,8 +2,11 @@
 sampling method, dtype and mode, with NumPy / python-control / scikit-fuzzy baselines.
 
 Prints one JSON line per configuration (style.md section 8); ``--out FILE.json`` also writes
-them as one JSON document ``{"meta": ..., "rows": [...]}``; ``--tables FILE.json ...`` turns
-result documents into the Markdown tables of ``benchmarks/README.md``.
+them as one JSON document ``{"meta": ..., "rows": [...]}``, rewritten atomically after every
+row, and ``--resume`` continues an interrupted run's document: the sections it finished are
+kept and the others run again (with the same options, on the same machine and JAX setup).
+``--tables FILE.json ...`` turns result documents into the Markdown tables of
+``benchmarks/README.md``.
 
 Sections (``--section``, default all):
 
@@ -120,16 +123,30 @@ def _version(module: str) -> str | None:
 
 
 class Emitter:
-    """Prints each row as one JSON line and keeps it for ``--out``."""
+    """Prints each row as one JSON line and keeps it, tagged with the section that measured it.
 
-    def __init__(self, meta: dict[str, Any]):
+    With ``out``, the result document ``{"meta": ..., "rows": [...]}`` is rewritten there
+    (atomically) after every row, so that an interrupted run keeps what it measured;
+    ``rows`` are those a resumed run keeps from the document it resumes.
+    """
+
+    def __init__(self, meta: dict[str, Any], out: str | None = None, rows: list[dict[str, Any]] | None = None):
         self.meta = meta
-        self.rows: list[dict[str, Any]] = []
+        self.out = out
+        self.rows: list[dict[str, Any]] = list(rows or [])
+        self.section: str | None = None
 
     def __call__(self, row: dict[str, Any]) -> None:
-        row = {**row, "affinity_cores": self.meta["affinity_cores"]}
+        row = {**row, "affinity_cores": self.meta["affinity_cores"], "section": self.section}
         self.rows.append(row)
         print(json.dumps(_jsonable(row)), flush=True)
+        self.save()
+
+    def save(self) -> None:
+        if self.out is not None:
+            from jaxflex.fileio import write_json
+
+            write_json(self.out, {"meta": self.meta, "rows": self.rows})
 
 
 def _jsonable(value: Any) -> Any:
@@ -795,6 +812,10 @@ def render_tables(paths: list[str]) -> str:
             f"jax {meta['jax_version']}, numpy {meta['numpy_version']}, load average at start {meta['loadavg_1min']:.2f}, "
             f"{meta['time_utc']}. GPU: {meta.get('gpu', '-')}.{_memory_note(meta)}\n\nCommand: `{meta['command']}`\n"
         )
+        for resumed in meta.get("resumed", []):
+            out.append(f"Resumed {resumed['time_utc']} (load average {resumed['loadavg_1min']:.2f}): `{resumed['command']}`\n")
+        if meta.get("complete") is False:
+            out.append(f"**Incomplete run**: sections finished: {', '.join(meta['sections_done']) or 'none'}; `--resume` with the same options runs the rest.\n")
         kinds = {r["kind"] for r in rows}
         out += _kind_tables(rows, _TABLES[:4])
         if kinds & {"baseline", "baseline_check", "rollout_vs_baseline"}:
@@ -842,7 +863,8 @@ def _count(text: str) -> int:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--section", nargs="+", choices=SECTIONS + ("all",), default=["all"], help="what to run (default all)")
-    p.add_argument("--out", default=None, help="also write the rows as one JSON document here")
+    p.add_argument("--out", default=None, help="also write the rows as one JSON document here, rewritten after every row")
+    p.add_argument("--resume", action="store_true", help="continue the run whose --out document this is: its finished sections are kept, the others run (the same options, machine and JAX)")
     p.add_argument("--tables", nargs="+", default=None, metavar="FILE", help="print Markdown tables of result documents and exit")
     p.add_argument("--runs", type=_count, default=5, help="timed calls per configuration after warm-up (default 5)")
     p.add_argument("--min-time", type=_seconds, default=2.0, help="timed seconds per configuration at least: more calls after --runs until they add up to this (default 2; small batches take milliseconds per call)")
@@ -865,11 +887,41 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+RESUME_MACHINE = ("cpu_model", "cpu_count", "affinity_cores", "device_kind", "n_devices", "xla_flags", "jax_version")  # meta a resumed run must share
+
+
+def _run_args(args: argparse.Namespace) -> dict[str, Any]:
+    """The options that decide what a run measures, as its document records them."""
+    return json.loads(json.dumps({k: v for k, v in sorted(vars(args).items()) if k not in ("out", "resume", "tables")}))
+
+
+def _resumed(path: str, meta: dict[str, Any], run_args: dict[str, Any]) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The meta and the finished sections' rows of the result document at ``path``, to go on
+    from; ``ValueError`` naming what differs when this run cannot continue it."""
+    from jaxflex.fileio import changed_fields
+
+    with open(path, encoding="utf-8") as f:
+        doc = json.load(f)
+    before = doc.get("meta") if isinstance(doc, dict) else None
+    if not isinstance(before, dict) or not isinstance(doc.get("rows"), list) or "args" not in before:
+        raise ValueError(f"--resume: --out {path} is not a document of a resumable run (no recorded options): start again in another --out")
+    if before["args"] != run_args:
+        raise ValueError(f"--resume: the options differ from those that wrote --out {path} ({changed_fields(before['args'], run_args)}): give the same options, or start again in another --out")
+    machine = {k: meta.get(k) for k in RESUME_MACHINE}
+    if {k: before.get(k) for k in RESUME_MACHINE} != machine:
+        raise ValueError(f"--resume: --out {path} was measured on another machine or JAX setup ({changed_fields(before, machine)}): its rows and this run's would not compare; start again in another --out")
+    done = before["sections_done"]
+    before.setdefault("resumed", []).append({k: meta[k] for k in ("time_utc", "loadavg_1min", "command")})
+    return before, [r for r in doc["rows"] if r.get("section") in done]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.tables:
         print(render_tables(args.tables))
         return 0
+    if args.resume and not args.out:
+        _parser().error("--resume needs --out FILE: the result document to continue")
     if len(set(args.cost_batches)) < 2 or min(args.cost_batches) < 1:
         _parser().error(f"--cost-batches needs two or more distinct batch sizes >= 1 (a line through them); got {args.cost_batches}")
     _setup_jax(args)
@@ -881,11 +933,25 @@ def main(argv: list[str] | None = None) -> int:
         args.grad_batches = [1024]
     sections = SECTIONS if "all" in args.section else tuple(args.section)
     meta = _meta()
-    emit = Emitter(meta)
+    rows: list[dict[str, Any]] = []
+    if args.resume and os.path.exists(args.out):
+        try:
+            meta, rows = _resumed(args.out, meta, _run_args(args))
+        except (OSError, ValueError) as e:
+            _parser().error(str(e))
+        if meta["complete"]:
+            print(f"--out {args.out} is complete: nothing to resume", file=sys.stderr)
+            return 0
+    else:
+        if args.resume:
+            print(f"--out {args.out} does not exist yet: nothing to resume, starting the run", file=sys.stderr)
+        meta.update(args=_run_args(args), sections_done=[], complete=False)
+    emit = Emitter(meta, args.out, rows)
     print(json.dumps({"kind": "meta", **_jsonable(meta)}), flush=True)
     for section in SECTIONS:
-        if section not in sections:
+        if section not in sections or section in meta["sections_done"]:
             continue
+        emit.section = section
         if section == "matmul":
             section_matmul(emit, args.runs)
         elif section == "flops":
@@ -906,12 +972,12 @@ def main(argv: list[str] | None = None) -> int:
             section_cost(emit, args.runs, args.min_time, args.horizon, tuple(args.cost_batches))
         elif section == "unroll":
             section_unroll(emit, args.runs, args.min_time, args.horizon, tuple(args.unroll_batches), args.grad_batch, tuple(args.unrolls))
+        meta["sections_done"].append(section)
+        emit.save()
     meta["loadavg_1min_end"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     meta["peak_device_bytes"] = _peak_device_bytes()
-    if args.out:
-        from jaxflex.fileio import write_json
-
-        write_json(args.out, {"meta": meta, "rows": emit.rows})
+    meta["complete"] = True
+    emit.save()
     return 0
 
 

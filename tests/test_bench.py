@@ -623,3 +623,75 @@ def test_flop_count_of_each_kind_of_operation():
     x = jnp.ones(5)
     jaxpr = jax.make_jaxpr(lambda x: jnp.sum(jnp.exp(x) ** 3) + jnp.sum(jnp.where(x > 0.5, x, 0.0)))(x).jaxpr
     assert count_flops(jaxpr) == (10 + 5 + 5 + 5 + 5 + 1, 5)
+
+
+def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(tmp_path, monkeypatch, capsys):
+    from benchmarks import bench_rollout as br
+
+    calls, interrupt = [], {"memory"}
+
+    def fake(name):
+        def section(emit, *args):
+            calls.append(name)
+            emit({"kind": "fake", "i": 0})
+            if name in interrupt:
+                raise KeyboardInterrupt
+            emit({"kind": "fake", "i": 1})
+
+        return section
+
+    monkeypatch.setattr(br, "section_matmul", fake("matmul"))
+    monkeypatch.setattr(br, "section_memory", fake("memory"))
+    out = tmp_path / "run.json"
+    argv = ["--section", "memory", "matmul", "--out", str(out)]
+
+    def saved():
+        doc = json.loads(out.read_text())
+        return doc, [(r["section"], r["i"]) for r in doc["rows"]]
+
+    with pytest.raises(KeyboardInterrupt):
+        br.main(argv)
+    doc, rows = saved()
+    assert rows == [("matmul", 0), ("matmul", 1), ("memory", 0)]  # on disk up to the interrupted row
+    assert doc["meta"]["sections_done"] == ["matmul"] and doc["meta"]["complete"] is False
+    assert "**Incomplete run**: sections finished: matmul;" in br.render_tables([str(out)])
+
+    interrupt.clear()
+    calls.clear()
+    assert br.main([*argv, "--resume"]) == 0
+    doc, rows = saved()
+    assert calls == ["memory"]  # the finished section is not measured again
+    assert rows == [("matmul", 0), ("matmul", 1), ("memory", 0), ("memory", 1)]  # the interrupted section's partial row dropped
+    assert doc["meta"]["complete"] is True and doc["meta"]["sections_done"] == ["matmul", "memory"] and len(doc["meta"]["resumed"]) == 1
+    table = br.render_tables([str(out)])
+    assert "Incomplete" not in table and table.count("Resumed ") == 1
+    capsys.readouterr()
+
+    calls.clear()
+    assert br.main([*argv, "--resume"]) == 0 and calls == []
+    assert "is complete: nothing to resume" in capsys.readouterr().err
+
+    doc["meta"]["complete"] = False
+    for change, message in (
+        (lambda d: None, "the options differ from those that wrote --out"),
+        (lambda d: d["meta"].update(jax_version="0.0.1"), "was measured on another machine or JAX setup (changed: jax_version: '0.0.1' -> "),
+        (lambda d: d["meta"].pop("args"), "is not a document of a resumable run"),
+    ):
+        edited = json.loads(json.dumps(doc))
+        change(edited)
+        out.write_text(json.dumps(edited))
+        extra = ["--runs", "3"] if "options" in message else []
+        with pytest.raises(SystemExit):
+            br.main([*argv, *extra, "--resume"])
+        err = capsys.readouterr().err
+        assert message in err, err
+        assert "options" not in message or "changed: runs: 5 -> 3" in err
+    assert calls == []
+
+    with pytest.raises(SystemExit):
+        br.main(["--section", "matmul", "--resume"])
+    assert "--resume needs --out FILE" in capsys.readouterr().err
+    fresh = tmp_path / "fresh.json"
+    assert br.main(["--section", "matmul", "--out", str(fresh), "--resume"]) == 0 and calls == ["matmul"]
+    assert "does not exist yet: nothing to resume" in capsys.readouterr().err
+    assert json.loads(fresh.read_text())["meta"]["complete"] is True
