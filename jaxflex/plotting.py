@@ -8,6 +8,7 @@ axes scaled to the runs that did not diverge (its growth would flatten them to a
 from __future__ import annotations
 
 import os
+import re
 import textwrap
 from typing import Any, Mapping, Sequence
 
@@ -605,7 +606,7 @@ def stability_chart(
         handles.append(matplotlib.lines.Line2D([], [], color="k", marker="*", ms=10, ls="none", label=f"operating point (k = {point[0]:g}, tau = {1e3 * point[1]:g} ms)"))
     ax.set_xlabel("Gain k (N*m/rad)")
     ax.set_ylabel("Delay tau (ms)")
-    ax.set_title(textwrap.fill(title, 75))  # it lists the arm's modes: 6 of them ran off the figure
+    ax.set_title(_title_lines(title, 75))  # it lists the arm's modes: 6 of them ran off the figure
     # under the chart: inside, it covered the top right, where the regions differ (found in a walkthrough)
     ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     fig.tight_layout()
@@ -665,6 +666,15 @@ def calibration(
     fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def _title_lines(text: str, width: int) -> str:
+    """``text`` in as few lines of at most ``width`` characters as it needs, of about equal
+    length, and never a number parted from its unit: wrapped greedily, the stability chart's
+    title ended in a lone "(zoh)" or "1\nms (zoh)"."""
+    text = re.sub(r"(\d) (?=(?:ms|s|Hz|m)\b)", "\\1\u00a0", text)  # textwrap breaks at ASCII spaces only
+    count = max(1, len(textwrap.wrap(text, width)))
+    return next("\n".join(lines) for w in range(max(1, -(-len(text) // count)), width + 1) if len(lines := textwrap.wrap(text, w)) <= count)
 
 
 ZOOM_PERIODS = 5

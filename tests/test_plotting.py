@@ -222,6 +222,20 @@ def test_stability_chart_title_with_many_modes_stays_on_the_figure():
     fig.canvas.draw()
     box = fig.axes[0].title.get_window_extent()
     assert 0 <= box.x0 and box.x1 <= fig.bbox.x1 and box.y1 <= fig.bbox.y1
+    assert fig.axes[0].get_title() == "DFS stability: 0.9\u00a0m arm, 6 modes at 13.3, 36.5,\n115, 241, 412, 628\u00a0Hz, sampled at 1\u00a0ms (zoh)"
+
+
+def test_a_wrapped_title_has_lines_of_about_equal_length_and_keeps_numbers_with_their_units():
+    # wrapped greedily at 75 characters, the 3-mode chart's title ended in a lone "(zoh)", the
+    # 4-mode one's in "1\nms (zoh)"
+    three = "DFS stability: 0.9 m arm, 3 modes at 13.3, 36.5, 115 Hz, sampled at 1 ms (zoh)"
+    assert plotting._title_lines(three, 75) == "DFS stability: 0.9\u00a0m arm, 3 modes at\n13.3, 36.5, 115\u00a0Hz, sampled at 1\u00a0ms (zoh)"
+    four = "DFS stability: 0.9 m arm, 4 modes at 13.3, 36.5, 115, 241 Hz, sampled at 1 ms (zoh)"
+    assert plotting._title_lines(four, 75) == "DFS stability: 0.9\u00a0m arm, 4 modes at 13.3,\n36.5, 115, 241\u00a0Hz, sampled at 1\u00a0ms (zoh)"
+    two = "DFS stability: 0.5 m arm, 2 modes at 13.3, 36.5 Hz, sampled at 1 ms (zoh)"  # 73 characters: one line
+    assert plotting._title_lines(two, 75) == two.replace("5 m", "5\u00a0m").replace("5 Hz", "5\u00a0Hz").replace("1 ms", "1\u00a0ms")
+    assert plotting._title_lines("x" * 100, 75) == "x" * 50 + "\n" + "x" * 50  # a word longer than a line: split, in halves
+    assert plotting._title_lines("", 75) == "" and plotting._title_lines("2 modes", 75) == "2 modes"  # "modes" is no unit
 
 
 def test_loss_curves_of_a_run_that_barely_moves_read_without_an_offset():
