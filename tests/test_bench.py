@@ -212,8 +212,15 @@ def test_the_gradient_is_set_against_the_forward_rate_of_the_same_loop_and_batch
     for field in SAME_PROGRAM:  # any field that differs makes another program
         other = [rows[0] | {field: "other"}, rows[2]]
         assert gradient_ratios(other) == [], field
-    # the quick subset pairs each of its gradient rows with such a forward row
+    assert gradient_ratios([rows[0] | {"unroll": 8}, rows[2]]) == []  # named here too: a field left out of SAME_PROGRAM paired them
+    # the quick subset pairs each of its gradient rows with such a forward row; as its docstring
+    # says, it times every controller and integrator at batch 4096 (the default), a float64
+    # row, and each row over a window of WINDOW_S
     configs = quick_configs()
+    from jaxflex.bench import WINDOW_S
+
+    assert BenchConfig().batch == 4096 and all(c.min_time_s == WINDOW_S > 0 for c in configs)
+    assert [c.batch for c in configs if c.controller == "open_loop"] == [4096, 4096] and any(c.dtype == "float64" for c in configs)
     for grad in (c for c in configs if c.mode == "grad"):
         assert any(c.mode == "forward" and all(getattr(c, f) == getattr(grad, f) for f in ("controller", "defuzz", "integrator", "dtype", "batch", "horizon", "capacity", "unroll")) for c in configs)
 
@@ -222,6 +229,8 @@ def test_gradient_over_the_gains_is_the_full_gradient_restricted_to_them():
     """wrt="gains" differentiates the values jaxflex tune tunes (k, tau_s, k1-k3) with the
     fuzzy set centres held: the same value as wrt="all", the same derivatives for those
     names, and a derivative a central difference confirms (float64)."""
+    from jaxflex.bench import mode_label
+
     with jax.enable_x64(True):
         base = dict(controller="dfs+fuzzy", dtype="float64", batch=3, horizon=60, mode="grad")
         fn_all, args_all = make_benchmark(BenchConfig(**base))
@@ -241,6 +250,7 @@ def test_gradient_over_the_gains_is_the_full_gradient_restricted_to_them():
         np.testing.assert_allclose((shifted[0] - shifted[1]) / (2 * h), float(grad_gains["k2"]), rtol=1e-5)
         rows = run_bench(None, configs=[BenchConfig(**{**base, "runs": 1}, wrt="gains"), BenchConfig(**{**base, "runs": 1, "mode": "forward"})], progress=None)
     assert [r["wrt"] for r in rows] == ["gains", None]
+    assert [mode_label(r) for r in rows] == ["grad (gains)", "forward"] and mode_label({"mode": "grad", "wrt": "all"}) == "grad"
     assert "value_and_grad over k, tau_s, k1, k2, k3 dfs+fuzzy/centroid zoh float64 B=3:" in format_table(rows)
     assert "grad (gains)" in format_table(rows).splitlines()[2]
 
@@ -254,12 +264,15 @@ def test_gradients_sharded_over_two_devices_equal_one_device():
         "import jax, json, sys\n"
         "jax.config.update('jax_num_cpu_devices', int(sys.argv[1]))\n"
         "jax.config.update('jax_enable_x64', True)\n"
-        "from jaxflex.bench import BenchConfig, make_benchmark\n"
-        "out = {'devices': jax.device_count()}\n"
+        "from jaxflex.bench import BenchConfig, device_info, make_benchmark\n"
+        "out = {'devices': jax.device_count(), 'n_devices': device_info()['n_devices']}\n"
         "for wrt in ('all', 'gains'):\n"
         "    fn, args = make_benchmark(BenchConfig(controller='dfs+fuzzy', dtype='float64', batch=4, horizon=60, mode='grad', wrt=wrt))\n"
         "    value, grad = fn(*args)\n"
         "    out[wrt] = [float(value)] + [float(x) for g in jax.tree.leaves(grad) for x in g.ravel()]\n"
+        "    out['shard_map_' + wrt] = 'shard_map' in str(jax.make_jaxpr(fn)(*args))\n"
+        "fn, args = make_benchmark(BenchConfig(controller='dfs', batch=4, horizon=10))\n"
+        "out['x0_devices'] = len(args[-1].sharding.device_set)\n"
         "print(json.dumps(out))\n"
     )
     runs = {}
@@ -267,7 +280,8 @@ def test_gradients_sharded_over_two_devices_equal_one_device():
         done = subprocess.run([sys.executable, "-c", script, str(devices)], capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=600)
         assert done.returncode == 0, done.stderr
         runs[devices] = json.loads(done.stdout.splitlines()[-1])
-        assert runs[devices]["devices"] == devices
+        assert runs[devices]["devices"] == runs[devices]["n_devices"] == runs[devices]["x0_devices"] == devices  # the batch split over both, as rows record
+        assert runs[devices]["shard_map_all"] == runs[devices]["shard_map_gains"] == (devices == 2)
     for wrt, size in (("all", 21), ("gains", 6)):  # the value and 20 or 5 derivatives
         assert len(runs[1][wrt]) == len(runs[2][wrt]) == size
         np.testing.assert_allclose(runs[2][wrt], runs[1][wrt], rtol=1e-12, atol=1e-30, err_msg=wrt)
@@ -314,6 +328,12 @@ def test_bench_config_validation():
     for bad in (-0.1, float("inf"), float("nan"), True):
         with pytest.raises(ValueError, match="min_time_s must be a finite number of seconds >= 0"):
             BenchConfig(min_time_s=bad)
+    for name, bad in (("integrator", "euler"), ("dtype", "float16"), ("defuzz", "mom"), ("mode", "backward")):  # each range its docstring states
+        with pytest.raises(ValueError, match=rf"^{name} must be one of \("):
+            BenchConfig(**{name: bad})
+    for name, low in (("horizon", 2), ("runs", 1)):
+        with pytest.raises(ValueError, match=rf"^{name} must be an integer >= {low}; got {low - 1}"):
+            BenchConfig(**{name: low - 1})
 
 
 def test_bench_script_refuses_a_bad_timing_window(capsys):
@@ -356,6 +376,8 @@ def test_buffer_capacity_reaches_the_controller_and_leaves_the_loop_unchanged():
         buffers.append(controller.init(params, jnp.zeros(2, jnp.float32)).buffer.shape)
     tree_allclose(outputs[0], outputs[1], rtol=0)
     assert buffers == [(65, 1), (9, 1)]
+    smooth, params = controller_and_params("dfs+fuzzy", "smooth", capacity=8)  # the smooth surface's DFS part too
+    assert (9, 1) in [a.shape for a in jax.tree.leaves(smooth.init(params, jnp.zeros(2, jnp.float32)))]
 
 
 def test_flop_count_of_a_known_jaxpr():
@@ -457,6 +479,8 @@ def test_bench_inputs_are_the_documented_scenarios():
     expected = np.zeros((300, 1))
     expected[100:110] = 0.5
     np.testing.assert_array_equal(force, expected)
+    _, _, noise = bench_inputs_np(2, 40000)  # N(0, (10 urad)^2) on the angle, N(0, (1 mrad/s)^2) on the velocity
+    np.testing.assert_allclose(noise.std(axis=0), [1e-5, 1e-3], rtol=0.03)  # 80,000 draws: the sample std within 1 %
 
 
 def test_smooth_defuzz_is_the_centroid_at_the_smooth_temperature():
@@ -576,28 +600,34 @@ def test_unroll_section_compares_each_program_with_the_plain_loop_and_tabulates_
 
 
 def test_time_calls_reads_its_fields_from_the_clocks(monkeypatch):
-    """A scripted clock: the first call (compiling) takes 5 s, five timed calls 0.1-0.5 s, and
-    the process time runs twice as fast as the wall clock. Each field is its documented
-    statistic of those times."""
+    """A scripted clock: the first call (compiling) takes 5 s, five timed calls 0.1-0.9 s (their
+    mean is not their median), and the process time runs 1-3 times as fast as the wall clock.
+    Each field is its documented statistic of those times; a first call no slower than the
+    others (already compiled) compiled for 0 s."""
     import jaxflex.bench as bench
 
-    walls = [5.0, 0.1, 0.3, 0.2, 0.4, 0.5]
-    perf, proc, ticks = [0.0], [0.0], iter(walls)
+    def scripted(walls, busy):
+        perf, proc, ticks = [0.0], [0.0], iter(zip(walls, busy))
 
-    def call():
-        took = next(ticks)
-        perf[0] += took
-        proc[0] += 2.0 * took
-        return jnp.zeros(())
+        def call():
+            took, cores = next(ticks)
+            perf[0] += took
+            proc[0] += cores * took
+            return jnp.zeros(())
 
-    monkeypatch.setattr(bench.time, "perf_counter", lambda: perf[0])
-    monkeypatch.setattr(bench.time, "process_time", lambda: proc[0])
-    timing = bench.time_calls(call, (), runs=5)
+        monkeypatch.setattr(bench.time, "perf_counter", lambda: perf[0])
+        monkeypatch.setattr(bench.time, "process_time", lambda: proc[0])
+        return call
+
+    walls, busy = [5.0, 0.1, 0.9, 0.2, 0.25, 0.3], [1.0, 2.0, 3.0, 1.0, 2.0, 2.0]
+    timing = bench.time_calls(scripted(walls, busy), (), runs=5)
     timed = np.array(walls[1:])
-    assert timing["first_call_s"] == pytest.approx(5.0) and timing["median_s"] == pytest.approx(np.median(timed))
-    assert timing["compile_s"] == pytest.approx(5.0 - np.median(timed))  # the first call less a run's time
-    assert timing["cpu_util"] == pytest.approx(2.0)
+    assert timing["first_call_s"] == pytest.approx(5.0) and timing["median_s"] == pytest.approx(0.25) != np.mean(timed)
+    assert timing["min_s"] == pytest.approx(0.1) and timing["window_s"] == pytest.approx(timed.sum())  # the timed calls only
+    assert timing["compile_s"] == pytest.approx(5.0 - 0.25)  # the first call less a run's time
+    assert timing["cpu_util"] == pytest.approx(np.dot(timed, busy[1:]) / timed.sum())  # CPU over wall time, summed over the calls
     assert timing["p10_s"] == pytest.approx(np.percentile(timed, 10)) and timing["p90_s"] == pytest.approx(np.percentile(timed, 90))
+    assert bench.time_calls(scripted([0.05, 0.1, 0.2, 0.3], [1.0] * 4), (), runs=3)["compile_s"] == 0.0
 
 
 def test_measure_turns_each_timing_into_steps_per_second(monkeypatch):
@@ -614,6 +644,7 @@ def test_measure_turns_each_timing_into_steps_per_second(monkeypatch):
         assert row["steps_per_second"] == pytest.approx(steps / 0.2) and row["steps_per_second_best"] == pytest.approx(steps / 0.1)
         assert row["steps_per_second_p10"] == pytest.approx(steps / 0.4) and row["steps_per_second_p90"] == pytest.approx(steps / 0.15)
         assert row["capacity"] == capacity and (row["defuzz"] is None) == ("fuzzy" not in controller)
+        assert row["kind"] == "rollout" and row["wrt"] is None  # the kind bench_rollout's tables group rows by
 
 
 def test_flop_count_of_each_kind_of_operation():
@@ -695,3 +726,33 @@ def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(
     assert br.main(["--section", "matmul", "--out", str(fresh), "--resume"]) == 0 and calls == ["matmul"]
     assert "does not exist yet: nothing to resume" in capsys.readouterr().err
     assert json.loads(fresh.read_text())["meta"]["complete"] is True
+
+
+def test_bench_plant_loss_and_device_fields_are_the_documented_ones():
+    """The integrator reaches the plant (rk4 and zoh are jaxflex's own discretisations); the
+    gradient rows' loss is the batch mean of the tip ISE, summed here one scenario at a time;
+    a CPU session's rows say there is no GPU, and the table prints that line and the median
+    rate (not the best)."""
+    import jaxflex as jf
+    from jaxflex.bench import device_info
+
+    continuous = jf.make_plant(jf.BeamParams(), 2)
+    for method in ("rk4", "zoh"):
+        np.testing.assert_allclose(bench_plant(method, jnp.float64).Ad, jf.discretize(continuous, 1e-3, method).Ad, rtol=1e-12, atol=1e-15)
+    assert not np.allclose(bench_plant("rk4", jnp.float64).Ad, bench_plant("zoh", jnp.float64).Ad, rtol=0, atol=1e-13)
+    with jax.enable_x64(True):
+        fn, args = make_benchmark(BenchConfig(controller="dfs", dtype="float64", batch=3, horizon=40, mode="grad"))
+        value, _ = fn(*args)
+        plant, (controller, params) = bench_plant("zoh", jnp.float64), controller_and_params("dfs", dtype=jnp.float64)
+        x0, force, noise = bench_inputs(3, 40, jnp.float64)
+        ises = [float(jnp.sum(rollout(plant, controller, params, Scenario(x0[i], force, noise)).z[:, 1] ** 2) * 1e-3) for i in range(3)]
+    assert float(value) == pytest.approx(np.mean(ises), rel=1e-10)
+    info = device_info()
+    assert info["n_devices"] == len(jax.devices())
+    if jax.devices()[0].platform == "cpu":
+        assert info["gpu"] == "no GPU available in this session"
+    row = {"controller": "dfs", "defuzz": None, "integrator": "zoh", "dtype": "float32", "batch": 8, "mode": "forward", "steps_per_second": 123.0,
+           "steps_per_second_best": 999.0, "steps_per_second_p10": 100.0, "steps_per_second_p90": 150.0, "runs": 5, "compile_s": 1.0, "cpu_util": 1.0,
+           "device": "cpu", "device_kind": "cpu", "n_devices": 1, "cpu_model": "x", "jax_version": "0", "gpu": "no GPU available in this session"}
+    table = format_table([row])
+    assert "GPU: no GPU available in this session" in table and "123" in table.splitlines()[2] and "999" not in table.splitlines()[2]

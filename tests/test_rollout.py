@@ -11,7 +11,7 @@ import pytest
 
 import jaxflex as jf
 from jaxflex.controllers import Controller, DFSParams, OpenLoopParams, PDParams, by_name, combine, dfs, fuzzy, fuzzy_params, open_loop, pd
-from jaxflex.scenarios import Scenario, initial_condition, paper_scenario
+from jaxflex.scenarios import PlantPerturbation, Scenario, initial_condition, paper_scenario
 from tests.helpers import tree_allclose
 
 RTOL_LOOP = 1e-10  # same arithmetic in another order, float64
@@ -823,3 +823,84 @@ def test_controllers_whose_init_state_differs_from_their_steps_still_run(plant2)
     batch = sc._replace(x0=jnp.stack([sc.x0, 2 * sc.x0]))
     for controller, scenario in ((as_list, sc), (counter, sc), (broadcast, batch)):
         assert np.all(np.isfinite(np.asarray(jf.rollout(plant2, controller, None, scenario).x)))
+
+
+# -- what a trajectory records, sample by sample (audit 14: a late y or a swapped noise channel passed) --
+
+
+def _noisy_scenario(plant, steps=60, seed=1):
+    """The paper's initial state, a random force and distinct noise on each channel and sample."""
+    rng = np.random.default_rng(seed)
+    force = 0.3 * rng.standard_normal((steps, 1))
+    noise = rng.standard_normal((steps, 2)) * np.array([1e-4, 1e-2])
+    return Scenario(paper_scenario(plant).x0, jnp.asarray(force), jnp.asarray(noise))
+
+
+def test_a_trajectory_records_y_and_z_of_the_same_sample_as_x(plant2):
+    """``y[k] = C x[k] + noise[k]`` and ``z[k] = Cz x[k]``, channel by channel."""
+    sc = _noisy_scenario(plant2)
+    traj = jf.rollout(plant2, pd(), PDParams(20.0, 0.5), sc)
+    np.testing.assert_allclose(traj.y, np.asarray(traj.x) @ np.asarray(plant2.C).T + np.asarray(sc.noise), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(traj.z, np.asarray(traj.x) @ np.asarray(plant2.Cz).T, rtol=1e-12, atol=1e-16)
+
+
+def test_pd_loop_matches_a_numpy_loop_that_reads_both_channels(plant2):
+    """The DFS reference reads only y[0]; PD, ``u = -(kp y0 + kd y1)``, reads the velocity
+    channel with its own noise too."""
+    sc = _noisy_scenario(plant2)
+    kp, kd = 20.0, 0.5
+    Ad, Bd, Ed, C = (np.asarray(a) for a in (plant2.Ad, plant2.Bd, plant2.Ed, plant2.C))
+    x, force, noise = np.asarray(sc.x0).copy(), np.asarray(sc.force), np.asarray(sc.noise)
+    us = []
+    for k in range(force.shape[0]):
+        y = C @ x + noise[k]
+        us.append(-(kp * y[0] + kd * y[1]))
+        x = Ad @ x + Bd[:, 0] * us[-1] + Ed[:, 0] * force[k, 0]
+    np.testing.assert_allclose(jf.rollout(plant2, pd(), PDParams(kp, kd), sc).u[:, 0], us, rtol=1e-9, atol=1e-14)
+
+
+def _plants_at(*dts):
+    plants = [jf.discretize(jf.make_plant(jf.BeamParams(), 2), dt, "zoh") for dt in dts]
+    return jax.tree.map(lambda *a: jnp.stack(a), *plants)
+
+
+def test_a_batch_of_plants_keeps_each_plants_sample_time():
+    """Plants at 1 ms and 2 ms: each scenario's times step by its own dt, and a mode frequency
+    must be below the slower plant's Nyquist frequency (250 Hz), not the faster one's."""
+    plants, steps = _plants_at(1e-3, 2e-3), 5
+    sc = Scenario(jnp.zeros((2, 6)), jnp.zeros((steps, 1)), jnp.zeros((steps, 2)))
+    traj = jf.rollout(plants, open_loop(), OpenLoopParams(), sc)
+    np.testing.assert_allclose(traj.t, [np.arange(steps) * 1e-3, np.arange(steps) * 2e-3], rtol=1e-12)
+    with pytest.raises(ValueError, match=r"mode_freqs_hz must be below the Nyquist frequency, 250 Hz"):
+        jf.rollout(plants, open_loop(), OpenLoopParams(), sc, output="metrics", mode_freqs_hz=[300.0])
+
+
+def test_one_scenario_with_a_perturbation_runs_on_the_plant_it_is_given(plant2):
+    """As documented: the perturbation is for ``scenarios.scenario_plant``; only a batch on one
+    shared plant is refused, and one scenario runs on the plant passed."""
+    sc = paper_scenario(plant2, horizon_s=0.01)
+    perturbed = sc._replace(plant=PlantPerturbation(*(jnp.asarray(v) for v in (1.1, 1.0, 1.0, 0.0))))
+    np.testing.assert_array_equal(jf.rollout(plant2, open_loop(), OpenLoopParams(), perturbed).x, jf.rollout(plant2, open_loop(), OpenLoopParams(), sc).x)
+
+
+def test_a_non_square_Ad_and_numpy_scenarios(plant2):
+    """A [5, 6] Ad is refused by name (not NumPy's matmul error); a scenario of NumPy arrays runs as
+    its jnp twin."""
+    with pytest.raises(ValueError, match=r"Ad must be square"):
+        jf.rollout(plant2._replace(Ad=plant2.Ad[:5]), open_loop(), OpenLoopParams(), paper_scenario(plant2, horizon_s=0.01))
+    sc = _noisy_scenario(plant2, steps=20)
+    as_numpy = Scenario(*(np.asarray(a) for a in sc[:3]))
+    np.testing.assert_array_equal(jf.rollout(plant2, open_loop(), OpenLoopParams(), as_numpy).x, jf.rollout(plant2, open_loop(), OpenLoopParams(), sc).x)
+
+
+def test_a_users_one_scenario_controller_with_a_vector_state_keeps_each_scenarios_state(plant2):
+    """A controller written for one scenario, with a 3-slot delay line as its state, on a batch
+    of 3 (the state's length equals the batch: a transposed state would run without error):
+    each member equals its own one-scenario rollout."""
+    own = Controller(lambda p, y0: jnp.full((3,), y0[0]), lambda p, s, y: (jnp.concatenate([s[1:], y[:1]]), -p * (y[:1] - s[:1])), lambda p: None)
+    x0 = np.tile(np.asarray(paper_scenario(plant2).x0), (3, 1))
+    x0[:, 0] = [0.0, 0.05, -0.1]  # distinct hub angles: distinct delay lines
+    force, noise = jnp.zeros((30, 1)), jnp.zeros((30, 2))
+    batch = jf.rollout(plant2, own, 40.0, Scenario(jnp.asarray(x0), force, noise))
+    for i in range(3):
+        np.testing.assert_allclose(batch.u[i], jf.rollout(plant2, own, 40.0, Scenario(jnp.asarray(x0[i]), force, noise)).u, rtol=1e-12, atol=1e-15)
