@@ -34,6 +34,7 @@ SMALL = dict(n_scenarios=12, n_heldout=8, scenarios=ScenarioSpec(horizon_s=0.3, 
 # below share this one configuration (and so, through the session's compilation cache in
 # conftest.py, their compiled programs) with the held-out improvement test.
 SHARED = dict(n_scenarios=24, n_heldout=12, scenarios=ScenarioSpec(horizon_s=0.4, impulse_max_n=0.3, youngs_modulus_rel=0.1))
+TINY = dict(n_scenarios=6, n_heldout=4, scenarios=ScenarioSpec(horizon_s=0.2, impulse_max_n=0.3))  # seconds per run, for checks of bookkeeping
 
 
 def script_heldout(monkeypatch, values) -> list:
@@ -52,6 +53,24 @@ def script_heldout(monkeypatch, values) -> list:
 
     monkeypatch.setattr(tuning.tuner, "Problem", Scripted)
     return made
+
+
+class Sampled(Exception):
+    """Raised where tune would sample its scenarios: what it says or refuses before is probed."""
+
+
+def fake_checkpoint(monkeypatch, tmp_path, config, **meta) -> None:
+    """A checkpoint of ``config``'s run holding only the metadata ``meta``, and a Problem that
+    raises Sampled."""
+    import tuning.tuner
+
+    meta = json.dumps({"fingerprint": config.fingerprint(), **meta}).encode()
+    np.savez(tmp_path / CHECKPOINT, meta=np.frombuffer(meta, dtype=np.uint8))
+
+    def problem(*args):
+        raise Sampled
+
+    monkeypatch.setattr(tuning.tuner, "Problem", problem)
 
 
 @pytest.fixture(scope="module")
@@ -1003,33 +1022,26 @@ def test_an_arm_that_overflows_the_run_dtype_is_refused_with_the_config():
 
 
 @pytest.mark.parametrize(
-    "state, said",
+    "steps, state, said",
     [
-        ({"step": 25}, "tune: resuming from {ckpt}, after 25 of 40 updates"),
-        ({"step": 40, "history": [{"step": 40}]}, "tune: the run in {out} has finished all 40 updates; writing its results again (--steps above 40 goes on)"),
-        ({"step": 30, "history": [{"step": 30}], "stopped_early": True}, "tune: the run in {out} stopped early after 30 updates; writing its results again"),
+        (40, {"step": 25}, "tune: resuming from {ckpt}, after 25 of 40 updates"),
+        (40, {"step": 40, "history": [{"step": 40}]}, "tune: the run in {out} has finished all 40 updates; writing its results again (--steps above 40 goes on)"),
+        (40, {"step": 30, "history": [{"step": 30}], "stopped_early": True}, "tune: the run in {out} stopped early after 30 updates; writing its results again"),
+        # its last update checkpointed, the final point not scored yet (rows up to 39): it goes on
+        (40, {"step": 40, "history": [{"step": 39}]}, "tune: resuming from {ckpt}, after 40 of 40 updates"),
+        # stopped early at 30 (rows up to 29), resumed with --steps 30: still stopped early
+        (30, {"step": 30, "history": [{"step": 29}], "stopped_early": True}, "tune: the run in {out} stopped early after 30 updates; writing its results again"),
     ],
 )
 @pytest.mark.parametrize("progress", [True, False], ids=["bar", "no bar"])
-def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys, state, said, progress):
+def test_resume_says_from_which_checkpoint(tmp_path, monkeypatch, capsys, steps, state, said, progress):
     """A resumed run says so, with the step it goes on from (it said nothing until its
     progress bar, after the compile, opened part-way); a finished or early-stopped one says
     that it only writes its results again (it said "after 40 of 40 updates"). It says so
     without the bar too (--no-progress, as under a scheduler): it said nothing there."""
-    import tuning.tuner
-
-    config = TuneConfig(steps=40)
-    meta = json.dumps({"fingerprint": config.fingerprint(), **state}).encode()
-    np.savez(tmp_path / CHECKPOINT, meta=np.frombuffer(meta, dtype=np.uint8))
-
-    class Sampled(Exception):
-        pass
-
-    def problem(*args):
-        raise Sampled  # the message comes before the sampling and compiling
-
-    monkeypatch.setattr(tuning.tuner, "Problem", problem)
-    with pytest.raises(Sampled):
+    config = TuneConfig(steps=steps)
+    fake_checkpoint(monkeypatch, tmp_path, config, **state)
+    with pytest.raises(Sampled):  # the message comes before the sampling and compiling
         tune(config, tmp_path, resume=True, progress=progress)
     assert said.format(ckpt=tmp_path / CHECKPOINT, out=tmp_path) in capsys.readouterr().err
 
@@ -1320,3 +1332,306 @@ def test_a_log_file_gets_lines_not_a_progress_bar(tmp_path, monkeypatch):
             assert cli.main([command, "--out", str(tmp_path / command)]) == 130
             assert cli.main([command, "--out", str(tmp_path / command), "--no-progress"]) == 130
             assert asked[-2:] == [expected, False], (command, expected)
+
+
+# -- audit 13 (tuner.py, objectives.py): ranges, the CVaR count, the fingerprint, resume edge cases, history.csv --
+
+
+# each range a docstring or message names is the range accepted
+@pytest.mark.parametrize("name", ["n_heldout", "eval_every", "patience", "checkpoint_every"])
+def test_integer_settings_below_1_are_refused_by_name(name):
+    with pytest.raises(ValueError, match=rf"^{name} must be an integer >= 1"):
+        TuneConfig(**{name: 0})
+
+
+@pytest.mark.parametrize("name", ["learning_rate", "clip_norm"])
+@pytest.mark.parametrize("bad", [0.0, -1.0])
+def test_step_size_and_clip_must_be_positive(name, bad):
+    with pytest.raises(ValueError, match=rf"^{name} must be a finite number > 0"):
+        TuneConfig(**{name: bad})
+
+
+def test_objective_refuses_a_negative_min_decay_rate_a_zero_temperature_and_a_bool_level():
+    with pytest.raises(ValueError, match="min_decay_rate must be a finite number >= 0"):
+        ObjectiveSpec(min_decay_rate=-1.0)
+    with pytest.raises(ValueError, match="worst_temperature must be a finite number > 0"):
+        ObjectiveSpec(worst_temperature=0.0)
+    with pytest.raises(ValueError, match=r"cvar_level must be a number in \[0, 1\)"):
+        ObjectiveSpec(cvar_level=False)
+
+
+# CVaR count: ceil((1 - level) B), at least 1
+@pytest.mark.parametrize("level, batch, tail", [(0.9, 25, 3), (0.98, 51, 2), (0.9, 35, 4), (1 - 1e-12, 4, 1)])
+def test_cvar_averages_ceil_of_the_tail_and_at_least_one(level, batch, tail):
+    values = np.random.default_rng(batch).permutation(np.arange(float(batch)))
+    got = float(objectives.reduce_losses(jnp.asarray(values), ObjectiveSpec(reduction="cvar", cvar_level=level)))
+    assert got == pytest.approx(np.sort(values)[-tail:].mean(), rel=1e-12)
+
+
+def test_log_spectral_radius_refuses_empty_and_infinite_matrices():
+    with pytest.raises(ValueError, match="matrix must be a square 2-D array"):
+        objectives.log_spectral_radius(jnp.zeros((0, 0)))
+    with pytest.raises(ValueError, match="matrix must be finite"):
+        objectives.log_spectral_radius(jnp.array([[1.0, jnp.inf], [0.0, 1.0]]))
+
+
+def test_fingerprint_holds_the_dtype():
+    """A float32 checkpoint must not be resumed by a float64 run (the docstring: the dtype is
+    part of what a resume must share)."""
+    cfg = TuneConfig()
+    with jax.enable_x64(False):
+        f32 = cfg.fingerprint()
+    assert f32 != cfg.fingerprint()
+
+
+@pytest.fixture(scope="module")
+def slow_decay_problem():
+    """DFS with a min_decay_rate far above the paper loop's (about 9 /s): the penalty acts."""
+    return Problem(TuneConfig(controller="dfs", objective=ObjectiveSpec(min_decay_rate=100.0, stability_weight=1e-3), **TINY))
+
+
+def test_the_training_loss_adds_the_active_penalty(slow_decay_problem):
+    p = slow_decay_problem
+    value, aux = p.evaluate(p.paper_raw, p.train)
+    decay = -math.log(float(stability.spectral_radius(p.nominal, 55.0, 5))) / 1e-3
+    penalty = 1e-3 * (100.0 - decay) ** 2
+    assert float(aux["penalty"]) == pytest.approx(penalty, rel=1e-6)
+    assert float(aux["objective"]) == pytest.approx(1.0, rel=1e-9)  # the paper's gains set the scales
+    assert float(value) == pytest.approx(1.0 + penalty, rel=1e-6)
+
+
+def test_history_grad_norm_is_the_norm_of_the_loss_gradient(tmp_path):
+    """grad_norm in row 0: the gradient of the loss at the starting point, by central differences
+    on the raw parameters (clip_norm tiny, so the update's norm differs from it)."""
+    cfg = TuneConfig(controller="dfs", steps=1, clip_norm=1e-6, initial={"k": 50.0, "tau_s": 0.0053}, **TINY)  # off a whole-sample kink
+    state = tune(cfg, tmp_path, progress=False)
+    p = state["problem"]
+    raw0 = p.initial_raw
+    fd = []
+    for name in sorted(raw0):
+        h = 1e-5
+        plus = {**raw0, name: raw0[name] + h}
+        minus = {**raw0, name: raw0[name] - h}
+        fd.append((float(p.evaluate(plus, p.train)[0]) - float(p.evaluate(minus, p.train)[0])) / (2 * h))
+    assert state["history"][0]["grad_norm"] == pytest.approx(float(np.linalg.norm(fd)), rel=1e-4)
+
+
+def test_heldout_batch_does_not_hold_the_training_paper_scenario(slow_decay_problem):
+    p = slow_decay_problem
+    paper_x0 = np.asarray(p.train.x0[0])
+    assert not np.any(np.all(np.asarray(p.heldout.x0) == paper_x0, axis=1))
+    assert np.all(np.any(np.asarray(p.heldout.force) != 0, axis=(1, 2)))  # every held-out scenario is a random draw
+
+
+def scripted_train_step(monkeypatch, at_call, **replace):
+    """Make the train step's info at its ``at_call``-th call (0-based) take ``replace``'s values."""
+    import tuning.tuner
+
+    class Scripted(tuning.tuner.Problem):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            step, calls = self.train_step, [0]
+
+            def train_step(raw, opt_state, batch):
+                raw, opt_state, info = step(raw, opt_state, batch)
+                if calls[0] == at_call:
+                    info = {**info, **{k: jnp.asarray(v) for k, v in replace.items()}}
+                calls[0] += 1
+                return raw, opt_state, info
+
+            self.train_step = train_step
+
+    monkeypatch.setattr(tuning.tuner, "Problem", Scripted)
+
+
+@pytest.mark.parametrize("checkpoint_every", [1, 25])
+def test_a_nan_after_the_first_update_names_its_step_and_what_is_kept(tmp_path, monkeypatch, checkpoint_every):
+    """The objective turns NaN at the point after 1 update: that is not 'the starting
+    parameters'; the step named is the update that failed (the one after those on_step counted),
+    and the message says whether a checkpoint is there to keep."""
+    scripted_train_step(monkeypatch, 1, loss=float("nan"))
+    done = []
+    with pytest.raises(ValueError) as err:
+        tune(TuneConfig(controller="dfs", steps=5, checkpoint_every=checkpoint_every, **TINY), tmp_path, progress=False, on_step=done.append)
+    msg = str(err.value)
+    assert done == [1] and "starting parameters" not in msg
+    assert f"the objective became nan at step {done[-1] + 1}:" in msg
+    written = (tmp_path / CHECKPOINT).exists()
+    assert written == (checkpoint_every == 1)
+    assert ("the last checkpoint in" in msg) == written and ("no checkpoint was written yet" in msg) == (not written)
+
+
+def test_an_exactly_zero_gradient_after_the_start_does_not_stop_the_run(tmp_path, monkeypatch):
+    """Only at the start does a zero gradient mean the objective cannot depend on the gains."""
+    scripted_train_step(monkeypatch, 1, grad_norm=0.0)
+    state = tune(TuneConfig(controller="dfs", steps=3, **TINY), tmp_path, progress=False)
+    assert state["step"] == 3
+
+
+@pytest.fixture(scope="module")
+def summary_from_k40(tmp_path_factory):
+    cfg = TuneConfig(controller="dfs", steps=1, initial={"k": 40.0}, **TINY)
+    state = tune(cfg, tmp_path_factory.mktemp("k40"), progress=False)
+    return state, summarize(state)
+
+
+def test_summary_scores_the_initial_and_paper_gains_on_each_batch(summary_from_k40):
+    state, summary = summary_from_k40
+    p = state["problem"]
+    obj = summary["objective"]
+    assert summary["initial_params"]["k"] == pytest.approx(40.0, rel=1e-12)
+    assert obj["train"]["paper"] == pytest.approx(1.0, rel=1e-9)  # the reference (paper) scores 1 on the training batch
+    initial = p.tc.to_raw(DFSParams(40.0, 0.005))
+    assert obj["train"]["before"] == pytest.approx(float(p.evaluate(initial, p.train)[1]["objective"]), rel=1e-9)
+    assert obj["train"]["before"] != pytest.approx(1.0, rel=1e-3)
+    assert obj["heldout"]["before"] == pytest.approx(float(p.evaluate(initial, p.heldout)[1]["objective"]), rel=1e-9)
+    assert obj["heldout"]["paper"] == pytest.approx(float(p.evaluate(p.paper_raw, p.heldout)[1]["objective"]), rel=1e-9)
+    assert obj["heldout"]["paper"] != pytest.approx(1.0, rel=1e-6)
+
+
+def test_summary_paper_radius_is_the_paper_loops(summary_from_k40):
+    state, summary = summary_from_k40
+    with jax.enable_x64(True):
+        nominal = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")
+        paper = float(stability.spectral_radius(nominal, 55.0, 5))
+    assert summary["stability"]["paper_spectral_radius"] == pytest.approx(paper, rel=1e-9)
+
+
+@pytest.mark.parametrize("k", [93.5, 95.0])
+def test_stable_means_a_radius_below_1(summary_from_k40, k):
+    """A loop just inside the unit circle (k = 93.5: radius ~0.9993) is stable; k = 95 (1.0013)
+    is not: the verdict is radius < 1, whatever its distance from 1."""
+    state, _ = summary_from_k40
+    tc = state["problem"].tc
+    summary = summarize({**state, "best_raw": tc.to_raw(DFSParams(k, 0.005))})
+    st = summary["stability"]
+    with jax.enable_x64(True):
+        nominal = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")
+        radius = float(stability.spectral_radius(nominal, k, 5))
+    assert st["spectral_radius"] == pytest.approx(radius, rel=1e-9)
+    assert abs(radius - 1) < 2e-3 and st["stable"] == (radius < 1)
+
+
+def test_a_resume_to_fewer_steps_than_taken_is_refused_by_one_too(tmp_path, monkeypatch):
+    config = TuneConfig(steps=29)
+    fake_checkpoint(monkeypatch, tmp_path, config, step=30, history=[{"step": 29}])
+    with pytest.raises(ValueError, match=r"has taken 30 steps already; steps = 29 cannot undo them"):
+        tune(config, tmp_path, resume=True, progress=False)
+
+
+def test_a_checkpoint_without_its_step_is_damaged(tmp_path, monkeypatch):
+    config = TuneConfig(steps=40)
+    fake_checkpoint(monkeypatch, tmp_path, config)  # the fingerprint, no step
+    with pytest.raises(ValueError, match=r"is damaged or not a checkpoint of jaxflex tune \(its metadata lacks the run's fingerprint and step\)"):
+        tune(config, tmp_path, resume=True, progress=False)
+
+
+def test_history_csv_holds_every_column_exactly_and_is_written_at_checkpoints(tmp_path):
+    """history.csv (README: step, loss, objective, penalty, val_objective, grad_norm, the
+    parameters) holds each row's values exactly (a float's repr round-trips), and an interrupted
+    run leaves it beside its checkpoint with the rows taken up to that checkpoint."""
+    import csv
+
+    def interrupt(step):
+        if step == 3:
+            raise KeyboardInterrupt
+
+    config = TuneConfig(controller="dfs", steps=5, checkpoint_every=2, eval_every=1, **TINY)
+    with pytest.raises(KeyboardInterrupt):
+        tune(config, tmp_path, progress=False, on_step=interrupt)
+    with open(tmp_path / "history.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["step"]) for r in rows] == [0, 1]
+    state = tune(config, tmp_path, resume=True, progress=False)
+    with open(tmp_path / "history.csv") as f:
+        reader = csv.DictReader(f)
+        assert reader.fieldnames == ["step", "loss", "objective", "penalty", "val_objective", "grad_norm", "k", "tau_s"]
+        rows = list(reader)
+    assert len(rows) == len(state["history"]) == 6
+    for row, h in zip(rows, state["history"]):
+        for name, text in row.items():
+            if name == "step":
+                assert int(text) == h["step"]
+            elif text == "":
+                assert h.get(name) is None, name
+            else:
+                assert float(text) == h[name], name
+    assert all(r["penalty"] != "" for r in rows)  # a DFS run's penalty is there, 0 where inactive
+
+
+def test_dfs_plus_fuzzy_reports_its_dfs_parts_radius(tmp_path):
+    """README: a dfs+fuzzy run's reported spectral radius is that of its DFS part alone."""
+    state = tune(TuneConfig(controller="dfs+fuzzy", steps=1, **TINY), tmp_path, progress=False)
+    summary = summarize(state)
+    st = summary["stability"]
+    with jax.enable_x64(True):
+        nominal = jf.discretize(jf.make_plant(jf.BeamParams(), 2), 1e-3, "rk4")
+        from jaxflex.analysis.stability import deflated_loop_matrix
+
+        k, tau = summary["params"]["k"], summary["params"]["tau_s"]
+        radius = float(np.max(np.abs(np.linalg.eigvals(np.asarray(deflated_loop_matrix(nominal, k, tau / 1e-3, 32, "linear"))))))
+        paper = float(stability.spectral_radius(nominal, 55.0, 5))
+    assert st["spectral_radius"] == pytest.approx(radius, rel=1e-9)
+    assert st["paper_spectral_radius"] == pytest.approx(paper, rel=1e-9)
+    assert "fuzzy part of dfs+fuzzy is not included" in st["note"]
+
+
+def test_any_finite_first_validation_sets_the_best(tmp_path, monkeypatch):
+    """best_val starts at inf: a huge but finite first held-out value (1e31) is the best so far,
+    so with patience 1 the run stops after the next (equal) one, at step 2, keeping step 0."""
+    script_heldout(monkeypatch, [1e31] * 5)
+    state = tune(TuneConfig(controller="dfs", steps=10, eval_every=1, patience=1, **TINY), tmp_path, progress=False)
+    assert state["best_step"] == 0 and state["best_val"] == pytest.approx(1e31, rel=1e-6) and state["step"] == 2 and state["stopped_early"]
+
+
+def test_a_non_finite_first_validation_counts_against_patience(tmp_path, monkeypatch):
+    """An inf held-out value at step 0 is no improvement: with patience 1 the run stops there."""
+    script_heldout(monkeypatch, [math.inf, 1.0, 1.0, 1.0])
+    state = tune(TuneConfig(controller="dfs", steps=10, eval_every=1, patience=1, **TINY), tmp_path, progress=False)
+    assert state["stopped_early"] and state["step"] == 1 and state["bad_evals"] == 1
+
+
+def test_fingerprint_holds_the_program(monkeypatch):
+    """README: a resumed run must have the same program (a hash of jaxflex's source, jax's and
+    jaxlib's versions); after an upgrade a checkpoint is refused."""
+    from jaxflex import fileio
+
+    before = TuneConfig().fingerprint()
+    monkeypatch.setattr(fileio, "program", lambda: "another program")
+    assert TuneConfig().fingerprint() != before
+
+
+def test_a_finished_run_resumed_with_the_same_steps_is_left_as_it_was(tmp_path, monkeypatch):
+    """Held-out 5, 6, 7 over 2 updates with patience 2: the run finishes (its final point never
+    stops it early); a --resume with the same steps only writes its results again: it must not
+    turn into 'stopped early' nor change its history."""
+    config = TuneConfig(controller="dfs", steps=2, eval_every=1, patience=2, **TINY)
+    script_heldout(monkeypatch, [5.0, 6.0, 7.0])
+    first = tune(config, tmp_path, progress=False)
+    assert not first["stopped_early"] and first["bad_evals"] == 2
+    rows = [dict(h) for h in first["history"]]
+    script_heldout(monkeypatch, [])
+    again = tune(config, tmp_path, resume=True, progress=False)
+    assert not again["stopped_early"] and again["step"] == 2 and again["bad_evals"] == 2
+    assert again["history"] == rows
+
+
+def test_a_carried_final_point_off_schedule_does_not_stop_the_resumed_run(tmp_path, monkeypatch):
+    """Patience 1, eval_every 2: a 1-step run ends on a worse final point (5, 6) at step 1, off
+    the validation schedule. Resumed to 5 steps, the run may only stop at a scheduled
+    validation (step 2, 4), as a longer run would: not at step 1."""
+    config = TuneConfig(controller="dfs", steps=5, eval_every=2, patience=1, **TINY)
+    script_heldout(monkeypatch, [5.0, 6.0])
+    tune(dataclasses.replace(config, steps=1), tmp_path, progress=False)
+    script_heldout(monkeypatch, [4.0, 4.0, 4.0])
+    resumed = tune(config, tmp_path, resume=True, progress=False)
+    assert [(h["step"], h.get("val_objective")) for h in resumed["history"]][:3] == [(0, 5.0), (1, 6.0), (2, 4.0)]
+    assert resumed["best_step"] == 2
+
+
+def test_a_resume_with_more_steps_records_its_new_target(tmp_path):
+    config = TuneConfig(controller="dfs", steps=1, **TINY)
+    tune(config, tmp_path, progress=False)
+    assert recorded_steps(tmp_path) == 1
+    tune(dataclasses.replace(config, steps=2), tmp_path, resume=True, progress=False)
+    assert recorded_steps(tmp_path) == 2
