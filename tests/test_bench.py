@@ -505,6 +505,8 @@ def test_cpu_model_names_the_family_and_model(tmp_path):
     assert _cpu_model(str(info)) == "AMD EPYC (family 23, model 1)"
     info.write_text("processor\t: 0\nmodel name\t: Some CPU\n")
     assert _cpu_model(str(info)) == "Some CPU"
+    info.write_text("processor\t: 0\ncpu family\t: 6\nmodel name\t: Some CPU\n")  # a family without a model: the name alone
+    assert _cpu_model(str(info)) == "Some CPU"
 
 
 def test_step_cost_fit_recovers_a_line_and_refuses_one_batch(capsys):

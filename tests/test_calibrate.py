@@ -484,3 +484,97 @@ def test_notes_appear_just_above_their_thresholds_and_not_just_below():
         result = calibrate(np.asarray(natural_frequencies_hz(start, 2)), start)
         assert (result.sensitivity[1] > 10) == noted and 5 < result.sensitivity[1] < 20
         assert any("determine hub_inertia_kg_m2 poorly" in n for n in result.notes) == noted
+
+
+# -- audit 15 (calibrate.py): the percent hint at 1 and from 100, an inert field, a fit just inside MAX_FACTOR, the evaluation count, fewer ratios than frequencies, a field moved down, to_toml's dt --
+
+
+def test_damping_of_exactly_1_gets_the_percent_hint():
+    # 1 meant as 1 %: the hint's range is 1 <= v < 100 (C23)
+    with pytest.raises(ValueError, match=r"ratios, not percent: 1 % is 0\.01"):
+        calibrate([14.0, 40.0], PAPER, damping=[1.0])
+
+
+@pytest.mark.parametrize("bad", [100.0, 150.0])
+def test_damping_of_100_or_more_gets_no_percent_hint(bad):
+    # 100 % would be a ratio of 1, itself refused: no hint from 100 up (C24)
+    with pytest.raises(ValueError) as err:
+        calibrate([14.0, 40.0], PAPER, damping=[bad])
+    assert "damping must be finite numbers in (0, 1)" in str(err.value)
+    assert "not percent" not in str(err.value)
+
+
+def test_hub_inertia_alone_clamped_is_named_as_not_acting():
+    # the only fitted field has a zero Jacobian column (scale 0): it is inert, not "not told apart" (C30)
+    f1 = float(natural_frequencies_hz(PAPER, 1, "clamped")[0])
+    with pytest.raises(ValueError, match=r"^hub_inertia_kg_m2 does not change the model's frequencies with the hub clamped"):
+        calibrate([f1], PAPER, fit=("hub_inertia_kg_m2",), hub="clamped")
+
+
+def test_a_fit_just_inside_max_factor_is_accepted():
+    # the model's frequencies go as sqrt(E) (K linear in E, M free of it): E 995x its start is
+    # inside MAX_FACTOR = 1000 and must be fitted, not refused as run off (C33)
+    measured = np.asarray(natural_frequencies_hz(PAPER, 2)) * np.sqrt(995.0)
+    result = calibrate(measured, PAPER, ("youngs_modulus_pa",))
+    np.testing.assert_allclose(result.beam.youngs_modulus_pa / PAPER.youngs_modulus_pa, 995.0, rtol=1e-8)
+
+
+def test_evaluations_count_the_model_evaluations(monkeypatch):
+    # Calibration.evaluations: the residual evaluations the least-squares search made, counted here (C38)
+    import tuning.calibrate as cal
+
+    real = cal.scipy.optimize.least_squares
+    calls = [0]
+
+    def counting(fun, *args, **kwargs):
+        def counted(z):
+            calls[0] += 1
+            return fun(z)
+
+        return real(counted, *args, **kwargs)
+
+    monkeypatch.setattr(cal.scipy.optimize, "least_squares", counting)
+    measured = np.asarray(natural_frequencies_hz(PAPER._replace(youngs_modulus_pa=90e9, hub_inertia_kg_m2=4e-4), 2))
+    result = calibrate(measured, PAPER)
+    assert calls[0] > 1 and result.evaluations == calls[0]
+    assert result.as_dict()["evaluations"] == calls[0]
+
+
+def test_damping_error_is_of_modes_1_to_n_d_when_fewer_ratios_than_frequencies():
+    # two ratios that a Rayleigh pair gives exactly (alpha / 2w + beta w / 2 at modes 1 and 2),
+    # three frequencies: the fit is exact, so modes 1 and 2 are missed by ~0 %, with no note (C39)
+    w = 2 * np.pi * np.asarray(natural_frequencies_hz(PAPER, 3))
+    alpha, beta = 0.5, 2e-4
+    ratios = alpha / (2 * w[:2]) + beta * w[:2] / 2
+    result = calibrate(w / (2 * np.pi), PAPER, damping=ratios)
+    np.testing.assert_allclose(result.damping_error_percent, [0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(result.after_damping, alpha / (2 * w) + beta * w / 2, rtol=1e-7)
+    assert not any("damping ratio" in note for note in result.notes)
+
+
+def test_a_field_moved_down_more_than_10x_gets_the_note():
+    # E down 20x (frequencies / sqrt(20)): outside [0.1, 10] of its start, so noted (C43)
+    measured = np.asarray(natural_frequencies_hz(PAPER, 2)) / np.sqrt(20.0)
+    result = calibrate(measured, PAPER, ("youngs_modulus_pa",))
+    np.testing.assert_allclose(result.beam.youngs_modulus_pa / PAPER.youngs_modulus_pa, 1 / 20, rtol=1e-8)
+    assert any(note.startswith("youngs_modulus_pa moved by more than 10x") for note in result.notes)
+
+
+def test_as_dict_model_damping_holds_every_measured_mode():
+    # model_damping is after_damping, [n_f]: the model's ratio in every measured mode, not only
+    # in the n_d with a measured ratio (C48)
+    w = 2 * np.pi * np.asarray(natural_frequencies_hz(PAPER, 3))
+    alpha, beta = 0.5, 2e-4
+    result = calibrate(w / (2 * np.pi), PAPER, damping=alpha / (2 * w[:2]) + beta * w[:2] / 2)
+    reported = result.as_dict()["model_damping"]
+    assert len(reported) == 3
+    np.testing.assert_allclose(reported, alpha / (2 * w) + beta * w / 2, rtol=1e-7)
+
+
+@pytest.mark.parametrize("dt", [-1e-3, 0.0, float("nan")])
+def test_to_toml_refuses_a_bad_dt_with_the_zoh_method(dt):
+    # with method "zoh" no RK4 check runs on dt: to_toml's own check must refuse it rather than
+    # write "[scenarios] dt = -0.001" into the config (C65)
+    result = calibrate(np.asarray(natural_frequencies_hz(PAPER, 2)), PAPER)
+    with pytest.raises(ValueError, match=r"dt must be a finite scalar > 0"):
+        to_toml(result, dt=dt, method="zoh")

@@ -555,3 +555,115 @@ def test_two_close_modes_that_beat_are_no_rise_unless_they_cancel_at_the_start()
     modes = identify_modes(tt, y, 2, start_s=0.95)
     assert modes.rise is None
     np.testing.assert_allclose(modes.frequencies_hz, hz, rtol=1e-9)
+
+
+# -- audit 15 (identify.py): each bound of the record and window checks at its edge, the needed length, small signals that are no constant, a cycle and a half, a component gone within a period, the largest rise --
+
+
+def test_n_modes_over_100_is_refused_naming_the_range():
+    # n_modes is checked against [1, 100] (the range the message names) before the record (I19)
+    tt = np.arange(100) * DT
+    with pytest.raises(ValueError, match=r"n_modes must be an integer in \[1, 100\]"):
+        identify_modes(tt, np.sin(2 * np.pi * 20 * tt), 101)
+    # 100 itself passes that check and meets the length one: 3 (2 (100 + 4) + 2 + 1) = 633 samples
+    with pytest.raises(ValueError, match=r"holds 100 samples; 100 modes need at least 633"):
+        identify_modes(tt, np.sin(2 * np.pi * 20 * tt), 100)
+
+
+def test_a_record_of_one_sample_is_refused_as_too_short():
+    # one sample: "at least 2 samples", not a window of no length (I20)
+    with pytest.raises(ValueError, match=r"the record must hold at least 2 samples of at least 1 channel"):
+        identify_modes([0.0], [1.0], 1)
+
+
+def test_a_repeated_sample_time_is_not_strictly_ascending():
+    # a time written twice (diff 0) is refused as not strictly ascending (I21)
+    tt = np.arange(300) * DT
+    tt[150] = tt[149]
+    with pytest.raises(ValueError, match=r"t must be strictly ascending"):
+        identify_modes(tt, np.sin(2 * np.pi * 20 * np.arange(300) * DT), 1)
+
+
+def _decay(n=600):
+    tt = np.arange(n) * DT
+    return tt, np.exp(-0.8 * tt) * np.sin(2 * np.pi * 12 * tt)
+
+
+def test_a_start_at_the_last_sample_is_outside_the_record():
+    # start_s must lie in [t[0], t[-1]): the last sample itself is refused as outside (I22)
+    tt = np.arange(100) * DT
+    with pytest.raises(ValueError, match=r"start_s must be within the record.*got 0.099 s"):
+        identify_modes(tt, np.ones(100), start_s=tt[-1])
+
+
+def test_a_start_at_the_first_sample_is_the_whole_record():
+    # start_s = t[0] is within the record: the same modes as no start_s (I23)
+    tt, y = _decay()
+    modes = identify_modes(tt, y, 1, start_s=float(tt[0]))
+    np.testing.assert_allclose(modes.frequencies_hz, [np.hypot(12.0, 0.8 / (2 * np.pi))], rtol=1e-9)
+    assert modes.start_s == 0.0 and modes.reconstruction.shape == (600, 1)
+
+
+def test_an_end_at_the_first_sample_is_not_after_it():
+    # end_s must be after t[0]: t[0] itself gets that message, not "after start_s" (I24)
+    tt = np.arange(100) * DT + 2.0
+    with pytest.raises(ValueError, match=r"end_s must be after the record's first sample, at 2 s \(t's clock\); got 2 s"):
+        identify_modes(tt, np.ones(100), end_s=2.0)
+
+
+def test_exactly_the_needed_samples_are_enough():
+    # 1 mode: order 2 (1 + 4) + 2 = 12, needed 3 (12 + 1) = 39 samples; 39 are accepted (I28)
+    tt = np.arange(39) * DT
+    y = np.exp(-3.0 * tt) * np.sin(2 * np.pi * 100 * tt)
+    modes = identify_modes(tt, y, 1)
+    np.testing.assert_allclose(modes.frequencies_hz, [np.hypot(100.0, 3.0 / (2 * np.pi))], rtol=1e-6)
+    with pytest.raises(ValueError, match=r"holds 38 samples; 1 modes need at least 39"):
+        identify_modes(tt[:38], y[:38], 1)
+
+
+def test_a_small_vibration_on_a_large_offset_is_no_constant_channel():
+    # RMS about the line 3.5e-8 of the largest value: far above round-off (1e-12), a mode (I31)
+    tt, y = _decay()
+    modes = identify_modes(tt, 1000.0 + 1e-4 * y, 1)
+    np.testing.assert_allclose(modes.frequencies_hz, [np.hypot(12.0, 0.8 / (2 * np.pi))], rtol=1e-6)
+
+
+def test_a_mode_of_one_and_a_half_cycles_counts():
+    # the window must hold a cycle or more of a mode (not two): 2.5 Hz over 0.599 s is 1.5 cycles (I35)
+    tt, _ = _decay()
+    modes = identify_modes(tt, np.exp(-0.5 * tt) * np.sin(2 * np.pi * 2.5 * tt), 1)
+    np.testing.assert_allclose(modes.frequencies_hz, [np.hypot(2.5, 0.5 / (2 * np.pi))], rtol=1e-8)
+
+
+def test_a_component_gone_within_a_period_but_not_half_is_no_mode():
+    # 40 Hz with sigma = 3 omega (damping ratio 0.95): its envelope a period after the peak is
+    # exp(-6 pi) ~ 7e-9 of it, under the noise floor; half a period after, exp(-3 pi) ~ 8e-5, over
+    # it. "Still above it a period after its peak": no mode (I37)
+    tt = np.arange(300) * DT
+    w = 2 * np.pi * 40
+    y = np.exp(-tt) + 0.5 * np.exp(-3 * w * tt) * np.cos(w * tt) + 0.2 * np.exp(-2 * tt) * np.sin(2 * np.pi * 15 * tt)
+    with pytest.raises(ValueError, match=r"found 1 mode\(s\) above the noise in the window \(15 Hz\)"):
+        identify_modes(tt, y, 2)
+
+
+def test_the_rise_reported_is_the_largest_of_the_channels():
+    # two channels rising 10x and 50x from their first quarter-period block (25 samples at
+    # 10 Hz, 1 kHz): the rise is 50x, in channel 1, from the second block (I48)
+    from tuning.identify import _rise
+
+    tt = np.arange(250) * DT
+    centred = np.ones((250, 2))
+    centred[25:, 0] = 10.0
+    centred[25:, 1] = 50.0
+    factor, channel, onset, peak = _rise(tt, centred, 10.0, DT)
+    assert (factor, channel) == (pytest.approx(50.0), 1)
+    assert onset == pytest.approx(0.025) and peak == pytest.approx(0.025)
+
+
+def test_a_small_channel_beside_a_large_one_is_no_constant_channel():
+    # "constant" is judged against each channel's own values: a channel in small units beside
+    # one in large units is a channel, and both see the mode (I62)
+    tt, y = _decay()
+    modes = identify_modes(tt, np.c_[1e9 * y, 1e-6 * y], 1)
+    np.testing.assert_allclose(modes.frequencies_hz, [np.hypot(12.0, 0.8 / (2 * np.pi))], rtol=1e-8)
+    assert modes.rms.shape == (1, 2)
