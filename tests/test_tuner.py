@@ -1635,3 +1635,18 @@ def test_a_resume_with_more_steps_records_its_new_target(tmp_path):
     assert recorded_steps(tmp_path) == 1
     tune(dataclasses.replace(config, steps=2), tmp_path, resume=True, progress=False)
     assert recorded_steps(tmp_path) == 2
+
+
+def test_a_run_without_a_bar_ends_its_log_with_one_line_at_100_percent(tmp_path, capsys):
+    """--no-progress: the last update's line is withheld for the final point's scores, so the
+    log has one '2 of 2' line, and it holds the final point's loss."""
+    state = tune(TuneConfig(controller="dfs", steps=2, **TINY), tmp_path, progress=False)
+    done = [line for line in capsys.readouterr().err.splitlines() if "2 of 2 updates (100 %)" in line]
+    assert len(done) == 1 and f"; loss {state['history'][-1]['loss']:.4g}," in done[0], done
+
+
+def test_the_loss_is_labelled_penalised_only_with_a_stability_weight(slow_decay_problem):
+    """Problem.penalised, which labels the loss curve "objective + stability penalty": DFS
+    with a stability_weight above 0; with 0 the penalty adds nothing."""
+    assert slow_decay_problem.penalised
+    assert not Problem(TuneConfig(controller="dfs", objective=ObjectiveSpec(stability_weight=0.0), **TINY)).penalised
