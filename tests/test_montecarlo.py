@@ -1092,3 +1092,158 @@ def test_a_resume_at_the_recorded_count_says_nothing_about_fewer_scenarios(tmp_p
     assert "note: --resume" not in capsys.readouterr().err
     assert cli.main([*args[:4], "4", *args[5:]]) == 0
     assert "note: --resume: --scenarios asked for 4 scenarios, where the run in" in capsys.readouterr().err
+
+
+# -- audit 16 (the run loop): counts and percentiles refused, the resume bar and lines, atomic chunk files, summary.json last, the chunk as run, sharding, the seed --
+
+TINY_SPEC = ScenarioSpec(horizon_s=0.02, impulse_max_n=0.5, noise_angle_rad=1e-6)
+
+
+@pytest.mark.parametrize("name", ["chunk", "band_scenarios"])
+def test_counts_below_one_are_refused(name):
+    """MCConfig's doc: chunk >= 1; band_scenarios is a count of scenarios (>= 1, as the others)."""
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match=rf"{name} must be an integer >= 1; got {bad!r}"):
+            MCConfig(**{name: bad})
+
+
+def test_resume_with_a_missing_middle_chunk_counts_only_what_is_stored(tmp_path, monkeypatch, capsys):
+    """45 scenarios in chunks of 10 (the last holds 5); chunk 1 deleted (as the damaged-chunk
+    message tells): the stored chunks hold 10 + 10 + 10 + 5 = 35 scenarios, so the bar starts
+    at 35/45 and the --no-progress lines count from 35 and end at 45."""
+    monkeypatch.setattr(montecarlo, "_Runner", StandInRunner)
+    config = MCConfig(n_scenarios=45, chunk=10, scenarios=TINY_SPEC)
+    run_montecarlo(config, tmp_path, progress=False, figures=False)
+    (tmp_path / "chunks" / "chunk_000001.npz").unlink()
+    capsys.readouterr()
+    summary = run_montecarlo(config, tmp_path, resume=True, progress=True, figures=False)
+    err = capsys.readouterr().err
+    assert "resuming: 4 of 5 chunks" in err
+    counts = [int(n) for n in re.findall(r"\b(\d+)/45\b", err)]
+    assert counts and counts[0] == 35 and counts[-1] == 45 and max(counts) == 45, err
+    assert summary["n_scenarios"] == 45
+    (tmp_path / "chunks" / "chunk_000001.npz").unlink()
+    clock = iter(range(0, 1000, 40))  # every line due
+    monkeypatch.setattr(montecarlo, "Heartbeat", functools.partial(Heartbeat, clock=lambda: next(clock)))
+    run_montecarlo(config, tmp_path, resume=True, progress=False, figures=False)
+    counts = [int(n) for n in re.findall(r"montecarlo: (\d+) of 45 scenarios", capsys.readouterr().err)]
+    assert counts == [45], counts  # 35 stored + the 10 run now
+
+
+def test_a_partial_resume_says_it_compiles(tmp_path, monkeypatch, capsys):
+    """A resume with chunks left to run says it compiles (nothing to compile only when all are stored)."""
+    monkeypatch.setattr(montecarlo, "_Runner", StandInRunner)
+    config = MCConfig(n_scenarios=30, chunk=10, scenarios=TINY_SPEC)
+
+    with pytest.raises(KeyboardInterrupt):
+        run_montecarlo(config, tmp_path, progress=False, figures=False, on_chunk=stop_at_chunk(0))
+    capsys.readouterr()
+    run_montecarlo(config, tmp_path, resume=True, progress=False, figures=False)
+    err = capsys.readouterr().err
+    assert "montecarlo: resuming: 1 of 3 chunks" in err
+    assert "montecarlo: 30 scenarios in 3 chunk(s) of 10 on 1 device(s), compiling\n" in err
+
+
+def test_a_chunk_file_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    """A write stopped part way (Ctrl-C in np.savez) leaves no chunk file: a resume would
+    otherwise meet a truncated chunk_000000.npz."""
+    monkeypatch.setattr(montecarlo, "_Runner", StandInRunner)
+    config = MCConfig(n_scenarios=10, chunk=10, scenarios=TINY_SPEC)
+    real = np.savez
+
+    def stopped(f, **rows):
+        real(f, **rows)
+        f.seek(0)
+        f.truncate(10)  # a part of the file written
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        run_montecarlo(config, tmp_path, progress=False, figures=False)
+    assert os.listdir(tmp_path / "chunks") == []
+
+
+def test_summary_json_is_moved_in_last(tmp_path, monkeypatch):
+    """The figures are moved into the folder before summary.json (its presence means the run finished)."""
+    monkeypatch.setattr(montecarlo, "_Runner", StandInRunner)
+    monkeypatch.setattr(montecarlo, "_figures", lambda runner, columns, stage: [open(os.path.join(stage, n), "wb").close() for n in montecarlo.FIGURES] and list(montecarlo.FIGURES))
+    moved, real = [], os.replace
+
+    def replace(src, dst):
+        if os.path.dirname(os.path.abspath(os.fspath(dst))) == str(tmp_path):
+            moved.append(os.path.basename(os.fspath(dst)))
+        return real(src, dst)
+
+    monkeypatch.setattr(fileio.os, "replace", replace)
+    run_montecarlo(MCConfig(n_scenarios=4, chunk=4, scenarios=TINY_SPEC), tmp_path, progress=False, figures=True)
+    finals = [name for name in moved if name in (*montecarlo.FIGURES, "summary.json")]
+    assert sorted(finals) == sorted([*montecarlo.FIGURES, "summary.json"]) and finals[-1] == "summary.json", moved
+
+
+def test_summary_says_the_chunk_as_run(tmp_path, monkeypatch, capsys):
+    """chunk 10 over 4 scenarios runs one chunk of 4: the start line, the summary and the record say 4."""
+    monkeypatch.setattr(montecarlo, "_Runner", StandInRunner)
+    summary = run_montecarlo(MCConfig(n_scenarios=4, chunk=10, scenarios=TINY_SPEC), tmp_path, progress=False, figures=False)
+    assert summary["chunk"] == 4 and summary["n_scenarios"] == 4
+    assert "montecarlo: 4 scenarios in 1 chunk(s) of 4 on 1 device(s), compiling\n" in capsys.readouterr().err
+
+
+_SHARD_SCRIPT = """
+import jax
+jax.config.update("jax_enable_x64", True)
+from jaxflex import montecarlo
+from jaxflex.scenarios import ScenarioSpec
+assert jax.device_count() == 4
+config = montecarlo.MCConfig(controller="dfs", n_scenarios=8, chunk=8, band_scenarios=1, scenarios=ScenarioSpec(horizon_s=0.01))
+runner = montecarlo._Runner(config)
+seen = []
+real = runner.evaluate
+def evaluate(batch):
+    seen.extend(leaf.sharding for leaf in jax.tree.leaves(batch))
+    return real(batch)
+runner.evaluate = evaluate
+rows = runner.run_chunk(0)
+assert seen and all(len(s.device_set) == 4 and not s.is_fully_replicated for s in seen), seen
+shapes = {len({idx[0].indices(8) for idx in s.devices_indices_map((8,) + (1,) * 0).values()}) for s in seen[:1]}
+assert shapes == {4}, shapes  # the 8 scenarios split into 4 different blocks of rows
+print("ok")
+"""
+
+
+def test_the_scenario_axis_is_split_over_the_devices():
+    """Module doc: each chunk's scenario axis is sharded over all local devices. On 4 CPU
+    devices every leaf handed to the compiled chunk is split (4 different row blocks), not
+    replicated on each device (same results, 4x the work)."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    out = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]
+
+
+def test_the_seed_picks_the_scenarios():
+    """Module doc: chunk i holds the scenarios drawn from fold_in(key(seed), i). With seed 7,
+    chunk 1's batch is that draw (not seed 0's), and its metrics differ from seed 0's."""
+    from jaxflex.scenarios import sample_scenarios
+
+    config = MCConfig(controller="dfs", n_scenarios=8, chunk=4, band_scenarios=1, seed=7, scenarios=TINY_SPEC)
+    runner = montecarlo._Runner(config)
+    spec = dataclasses.replace(TINY_SPEC, include_paper=False)
+    expected = sample_scenarios(spec, jax.random.fold_in(jax.random.key(7), 1), 4)
+    for got, want in zip(jax.tree.leaves(runner.sample(1)), jax.tree.leaves(expected)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    seed0 = montecarlo._Runner(MCConfig(controller="dfs", n_scenarios=8, chunk=4, band_scenarios=1, seed=0, scenarios=TINY_SPEC)).run_chunk(1)
+    assert not np.array_equal(runner.run_chunk(1)["peak_tip_deflection_m"], seed0["peak_tip_deflection_m"])
+
+
+def test_a_run_without_figures_lists_none(tmp_path, monkeypatch):
+    """figures=False draws nothing, and summary.json's "figures" says so (an empty list)."""
+    monkeypatch.setattr(montecarlo, "_Runner", StandInRunner)
+    summary = run_montecarlo(MCConfig(n_scenarios=4, chunk=4, scenarios=TINY_SPEC), tmp_path, progress=False, figures=False)
+    assert summary["figures"] == [] and not any((tmp_path / name).exists() for name in montecarlo.FIGURES)
+    assert json.loads((tmp_path / "summary.json").read_text())["figures"] == []
+
+
+@pytest.mark.parametrize("empty", [(), [], np.array([])])
+def test_no_percentiles_is_refused(empty):
+    """The message names a non-empty list: an empty one is refused, not run with no percentiles."""
+    with pytest.raises(ValueError, match=r"percentiles must be numbers in \[0, 100\] \(a non-empty list, tuple or 1-D array\)"):
+        MCConfig(percentiles=empty)
