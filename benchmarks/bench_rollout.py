@@ -901,7 +901,10 @@ def _resumed(path: str, meta: dict[str, Any], run_args: dict[str, Any]) -> tuple
     from jaxflex.fileio import changed_fields
 
     with open(path, encoding="utf-8") as f:
-        doc = json.load(f)
+        try:
+            doc = json.load(f)
+        except ValueError as e:
+            raise ValueError(f"--resume: --out {path} is not a JSON document ({e}): start again in another --out") from None
     before = doc.get("meta") if isinstance(doc, dict) else None
     if not isinstance(before, dict) or not isinstance(doc.get("rows"), list) or "args" not in before:
         raise ValueError(f"--resume: --out {path} is not a document of a resumable run (no recorded options): start again in another --out")

@@ -709,10 +709,14 @@ def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(
         (lambda d: None, "the options differ from those that wrote --out"),
         (lambda d: d["meta"].update(jax_version="0.0.1"), "was measured on another machine or JAX setup (changed: jax_version: '0.0.1' -> "),
         (lambda d: d["meta"].pop("args"), "is not a document of a resumable run"),
+        (None, "is not a JSON document (Expecting property name"),
     ):
         edited = json.loads(json.dumps(doc))
-        change(edited)
-        out.write_text(json.dumps(edited))
+        if change is None:
+            out.write_text("{not json")
+        else:
+            change(edited)
+            out.write_text(json.dumps(edited))
         extra = ["--runs", "3"] if "options" in message else []
         with pytest.raises(SystemExit):
             br.main([*argv, *extra, "--resume"])
