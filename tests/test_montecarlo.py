@@ -1242,6 +1242,13 @@ def test_a_run_without_figures_lists_none(tmp_path, monkeypatch):
     assert json.loads((tmp_path / "summary.json").read_text())["figures"] == []
 
 
+def test_params_named_by_anything_but_strings_are_refused():
+    """``params`` is a dict of values by name: a key that is no name is refused as such."""
+    for bad in ({1: 55.0}, {("k",): 55.0}):
+        with pytest.raises(ValueError, match=r"params must be a dict of parameter values by name; got \{"):
+            MCConfig(params=bad)
+
+
 @pytest.mark.parametrize("empty", [(), [], np.array([])])
 def test_no_percentiles_is_refused(empty):
     """The message names a non-empty list: an empty one is refused, not run with no percentiles."""
