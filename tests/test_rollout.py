@@ -829,11 +829,8 @@ def test_controllers_whose_init_state_differs_from_their_steps_still_run(plant2)
 
 
 def _noisy_scenario(plant, steps=60, seed=1):
-    """The paper's initial state, a random force and distinct noise on each channel and sample."""
-    rng = np.random.default_rng(seed)
-    force = 0.3 * rng.standard_normal((steps, 1))
-    noise = rng.standard_normal((steps, 2)) * np.array([1e-4, 1e-2])
-    return Scenario(paper_scenario(plant).x0, jnp.asarray(force), jnp.asarray(noise))
+    """One of ``_batch_of_scenarios``: a random force and distinct noise on each channel and sample."""
+    return jax.tree.map(lambda a: a[0], _batch_of_scenarios(plant, 1, steps, seed))
 
 
 def test_a_trajectory_records_y_and_z_of_the_same_sample_as_x(plant2):
