@@ -2,9 +2,11 @@
 sampling method, dtype and mode, with NumPy / python-control / scikit-fuzzy baselines.
 
 Prints one JSON line per configuration (style.md section 8); ``--out FILE.json`` also writes
-them as one JSON document ``{"meta": ..., "rows": [...]}``, rewritten atomically after every
-row, and ``--resume`` continues an interrupted run's document: the sections it finished are
-kept and the others run again (with the same options, on the same machine and JAX setup).
+them as one JSON document ``{"meta": ..., "rows": [...]}``. Until the run ends, the document
+is ``FILE.json.partial``, rewritten atomically after every row (``FILE.json``, say an earlier
+run's results, stays as it was); ``--resume`` continues an interrupted run from it: the
+sections it finished are kept and the others run again (with the same options, on the same
+machine and JAX setup).
 ``--tables FILE.json ...`` turns result documents into the Markdown tables of
 ``benchmarks/README.md``.
 
@@ -125,8 +127,9 @@ def _version(module: str) -> str | None:
 class Emitter:
     """Prints each row as one JSON line and keeps it, tagged with the section that measured it.
 
-    With ``out``, the result document ``{"meta": ..., "rows": [...]}`` is rewritten there
-    (atomically) after every row, so that an interrupted run keeps what it measured;
+    With ``out`` (the run's ``.partial`` document), the result document ``{"meta": ...,
+    "rows": [...]}`` is rewritten there (atomically) after every row, so that an interrupted
+    run keeps what it measured;
     ``rows`` are those a resumed run keeps from the document it resumes.
     """
 
@@ -863,8 +866,8 @@ def _count(text: str) -> int:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--section", nargs="+", choices=SECTIONS + ("all",), default=["all"], help="what to run (default all)")
-    p.add_argument("--out", default=None, help="also write the rows as one JSON document here, rewritten after every row")
-    p.add_argument("--resume", action="store_true", help="continue the run whose --out document this is: its finished sections are kept, the others run (the same options, machine and JAX)")
+    p.add_argument("--out", default=None, help="also write the rows as one JSON document here at the end; until then they are in OUT.partial, rewritten after every row")
+    p.add_argument("--resume", action="store_true", help="continue the interrupted run of --out from OUT.partial: its finished sections are kept, the others run (the same options, machine and JAX)")
     p.add_argument("--tables", nargs="+", default=None, metavar="FILE", help="print Markdown tables of result documents and exit")
     p.add_argument("--runs", type=_count, default=5, help="timed calls per configuration after warm-up (default 5)")
     p.add_argument("--min-time", type=_seconds, default=2.0, help="timed seconds per configuration at least: more calls after --runs until they add up to this (default 2; small batches take milliseconds per call)")
@@ -937,9 +940,11 @@ def main(argv: list[str] | None = None) -> int:
     sections = SECTIONS if "all" in args.section else tuple(args.section)
     meta = _meta()
     rows: list[dict[str, Any]] = []
-    if args.resume and os.path.exists(args.out):
+    partial = None if args.out is None else args.out + ".partial"
+    source = next((path for path in (partial, args.out) if args.resume and os.path.exists(path)), None)
+    if source is not None:
         try:
-            meta, rows = _resumed(args.out, meta, _run_args(args))
+            meta, rows = _resumed(source, meta, _run_args(args))
         except (OSError, ValueError) as e:
             _parser().error(str(e))
         if meta["complete"]:
@@ -947,9 +952,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
     else:
         if args.resume:
-            print(f"--out {args.out} does not exist yet: nothing to resume, starting the run", file=sys.stderr)
+            print(f"--out {args.out}: no interrupted run to resume ({partial} does not exist), starting the run", file=sys.stderr)
         meta.update(args=_run_args(args), sections_done=[], complete=False)
-    emit = Emitter(meta, args.out, rows)
+    emit = Emitter(meta, partial, rows)
     print(json.dumps({"kind": "meta", **_jsonable(meta)}), flush=True)
     for section in SECTIONS:
         if section not in sections or section in meta["sections_done"]:
@@ -980,7 +985,12 @@ def main(argv: list[str] | None = None) -> int:
     meta["loadavg_1min_end"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     meta["peak_device_bytes"] = _peak_device_bytes()
     meta["complete"] = True
-    emit.save()
+    if args.out is not None:
+        from jaxflex.fileio import write_json
+
+        write_json(args.out, {"meta": meta, "rows": emit.rows})
+        if os.path.exists(partial):
+            os.remove(partial)
     return 0
 
 

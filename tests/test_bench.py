@@ -675,24 +675,27 @@ def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(
 
     monkeypatch.setattr(br, "section_matmul", fake("matmul"))
     monkeypatch.setattr(br, "section_memory", fake("memory"))
-    out = tmp_path / "run.json"
+    out, partial = tmp_path / "run.json", tmp_path / "run.json.partial"
+    out.write_text('{"an earlier run": "its results"}')
     argv = ["--section", "memory", "matmul", "--out", str(out)]
 
-    def saved():
-        doc = json.loads(out.read_text())
+    def saved(path):
+        doc = json.loads(path.read_text())
         return doc, [(r["section"], r["i"]) for r in doc["rows"]]
 
     with pytest.raises(KeyboardInterrupt):
         br.main(argv)
-    doc, rows = saved()
+    assert out.read_text() == '{"an earlier run": "its results"}'  # no half-finished run over it
+    doc, rows = saved(partial)
     assert rows == [("matmul", 0), ("matmul", 1), ("memory", 0)]  # on disk up to the interrupted row
     assert doc["meta"]["sections_done"] == ["matmul"] and doc["meta"]["complete"] is False
-    assert "**Incomplete run**: sections finished: matmul;" in br.render_tables([str(out)])
+    assert "**Incomplete run**: sections finished: matmul;" in br.render_tables([str(partial)])
 
     interrupt.clear()
     calls.clear()
     assert br.main([*argv, "--resume"]) == 0
-    doc, rows = saved()
+    assert not partial.exists()
+    doc, rows = saved(out)
     assert calls == ["memory"]  # the finished section is not measured again
     assert rows == [("matmul", 0), ("matmul", 1), ("memory", 0), ("memory", 1)]  # the interrupted section's partial row dropped
     assert doc["meta"]["complete"] is True and doc["meta"]["sections_done"] == ["matmul", "memory"] and len(doc["meta"]["resumed"]) == 1
@@ -730,7 +733,7 @@ def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(
     assert "--resume needs --out FILE" in capsys.readouterr().err
     fresh = tmp_path / "fresh.json"
     assert br.main(["--section", "matmul", "--out", str(fresh), "--resume"]) == 0 and calls == ["matmul"]
-    assert "does not exist yet: nothing to resume" in capsys.readouterr().err
+    assert "no interrupted run to resume (" in capsys.readouterr().err
     assert json.loads(fresh.read_text())["meta"]["complete"] is True
 
 
