@@ -695,10 +695,15 @@ def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model
     t, record, t_model, model = (np.asarray(a, dtype=float) for a in (t, record, t_model, model))
     zoom = period_s is not None
     fig, axes = plt.subplots(len(names), 2 if zoom else 1, figsize=(13.0 if zoom else 9.0, 1.2 + 2.0 * len(names)), sharex="col", squeeze=False, gridspec_kw={"width_ratios": [2, 1]} if zoom else None)
+    start = float(t_model[0])
+    stop = start + ZOOM_PERIODS * float(period_s) if zoom else None
+    drawn = [(slice(None), slice(None))]
+    if zoom:  # the zoom draws its window and the sample either side, which carry the lines to its edges
+        drawn.append((slice(max(int(np.searchsorted(t, start)) - 1, 0), int(np.searchsorted(t, stop, side="right")) + 1), slice(0, int(np.searchsorted(t_model, stop, side="right")) + 1)))
     for row, (name, y, fit) in enumerate(zip(names, record.T, model.T)):
-        for ax in axes[row]:
-            ax.plot(t, y, color="0.6", lw=1.0, label="record")
-            ax.plot(t_model, fit, color="C0", lw=1.0, ls="--", label="modes identified")
+        for ax, (rec, mod) in zip(axes[row], drawn):
+            ax.plot(t[rec], y[rec], color="0.6", lw=1.0, label="record")
+            ax.plot(t_model[mod], fit[mod], color="C0", lw=1.0, ls="--", label="modes identified")
             ax.axvline(t_model[0], color="k", lw=0.8, ls=":")
             ax.grid(alpha=0.3)
         axes[row, 0].set_ylabel(name)
@@ -710,11 +715,10 @@ def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model
         axes[0, 0].set_xlim(float(t[0]), _view_end(t, settled))
         _settled_note(axes[-1, 0], settled, float(t[-1]), "every channel stays within {} of its largest excursion from its last value", "the record's end")
     if zoom:
-        start = float(t_model[0])
-        axes[0, 1].set_xlim(start, start + ZOOM_PERIODS * float(period_s))
+        axes[0, 1].set_xlim(start, stop)
         axes[0, 1].set_title(f"{ZOOM_PERIODS} periods of the slowest mode ({_seconds(float(period_s))} s each)", fontsize=9)
         for row, (y, fit) in enumerate(zip(record.T, model.T)):
-            shown = np.concatenate([y[(t >= start) & (t <= start + ZOOM_PERIODS * period_s)], fit[t_model <= start + ZOOM_PERIODS * period_s]])
+            shown = np.concatenate([y[(t >= start) & (t <= stop)], fit[t_model <= stop]])
             if shown.size and np.all(np.isfinite(shown)):
                 axes[row, 1].set_ylim(*_padded(shown.min(), shown.max()))
     fig.suptitle(title)

@@ -638,8 +638,17 @@ def test_identification_ends_where_the_record_settles_and_zooms_on_the_slowest_m
         shown = y[(t >= start) & (t <= start + 5 / 13.0)]
         lo, hi = ax.get_ylim()
         assert lo < shown.min() and shown.max() < hi and hi - lo < 1.5 * (shown.max() - shown.min())
+        # it draws its window and a sample either side, not the whole record under a limit
+        # (which took as long to draw as the whole-record column)
         lines = {line.get_label(): line for line in ax.get_lines()}
-        np.testing.assert_array_equal(lines["modes identified"].get_xdata(), t[window])
+        rec, mod = lines["record"].get_xdata(), lines["modes identified"].get_xdata()
+        assert rec[0] < start <= rec[1] and rec[-2] <= start + 5 / 13.0 < rec[-1]
+        assert mod[0] == t[window][0] and mod[-2] <= start + 5 / 13.0 < mod[-1]
+        np.testing.assert_array_equal(lines["record"].get_ydata(), y[np.isin(t, rec)])
+        np.testing.assert_array_equal(lines["modes identified"].get_ydata(), 0.9 * y[np.isin(t, mod)])
+    for ax in whole:
+        lines = {line.get_label(): line for line in ax.get_lines()}
+        assert lines["record"].get_xdata().size == t.size and lines["modes identified"].get_xdata().size == window.sum()
     # a hub that drifts does not settle: the whole record, no note, and one column without a period
     drift = np.stack([hub + 1e-3 * t, tip], axis=1)
     fig = plotting.identification(t, drift, t, drift, ["hub", "tip"], "tap.csv")
