@@ -501,6 +501,12 @@ def _settle_time(t: np.ndarray, deviation: np.ndarray) -> float | None:
     return float(t[active[-1] + 1]) if active[-1] + 1 < len(t) else None
 
 
+def _shown(t: np.ndarray, lo: float | None, hi: float | None) -> slice:
+    """The samples of ``t`` (ascending) from ``lo`` to ``hi`` (None: its first or last) and the
+    one just outside each bound."""
+    return slice(0 if lo is None else max(int(np.searchsorted(t, lo)) - 1, 0), None if hi is None else int(np.searchsorted(t, hi, side="right")) + 1)
+
+
 def _view_end(t: np.ndarray, settled: float) -> float:
     """Where a time axis ends for a response settled at ``settled``: a quarter past it, at
     least 5 % of the horizon."""
@@ -682,24 +688,25 @@ ZOOM_PERIODS = 5
 
 
 def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model: np.ndarray, names: Sequence[str], title: str, period_s: float | None = None) -> plt.Figure:
-    """A free-vibration record (every sample) and the model of its modes over the window
-    identified, one row per channel.
+    """A free-vibration record (every sample, no decimation) and the model of its modes over
+    the window identified, one row per channel.
 
     A record that settles within ZOOM_FRACTION of its length (every channel within
     SETTLED_FRACTION of its largest excursion from its last value) is drawn up to a quarter
     past that time, with a note under the axis: a 100 s record of a decay over 10 s was a solid
-    band. With ``period_s`` (the slowest mode's period, s), a second column shows the first
+    band. Each column draws only the samples it shows (and one either side). With ``period_s`` (the slowest mode's period, s), a second column shows the first
     ZOOM_PERIODS periods from the window's start, where the record and the model can be told
     apart.
     """
     t, record, t_model, model = (np.asarray(a, dtype=float) for a in (t, record, t_model, model))
     zoom = period_s is not None
     fig, axes = plt.subplots(len(names), 2 if zoom else 1, figsize=(13.0 if zoom else 9.0, 1.2 + 2.0 * len(names)), sharex="col", squeeze=False, gridspec_kw={"width_ratios": [2, 1]} if zoom else None)
+    settled = _run_settled(t, list(record.T)) if t.size > 1 else None
+    end = _view_end(t, settled) if _settled_early(t, settled) and settled > t[0] else None
     start = float(t_model[0])
     stop = start + ZOOM_PERIODS * float(period_s) if zoom else None
-    drawn = [(slice(None), slice(None))]
-    if zoom:  # the zoom draws its window and the sample either side, which carry the lines to its edges
-        drawn.append((slice(max(int(np.searchsorted(t, start)) - 1, 0), int(np.searchsorted(t, stop, side="right")) + 1), slice(0, int(np.searchsorted(t_model, stop, side="right")) + 1)))
+    # each column draws the samples it shows and one either side, which carry the lines to its edges
+    drawn = [(_shown(t, None, end), _shown(t_model, None, end))] + ([(_shown(t, start, stop), _shown(t_model, start, stop))] if zoom else [])
     for row, (name, y, fit) in enumerate(zip(names, record.T, model.T)):
         for ax, (rec, mod) in zip(axes[row], drawn):
             ax.plot(t[rec], y[rec], color="0.6", lw=1.0, label="record")
@@ -710,9 +717,8 @@ def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model
     axes[0, 0].legend(fontsize=8, loc="best")  # a hub that drifts up fills the upper right
     for ax in axes[-1]:
         ax.set_xlabel("Time (s)")
-    settled = _run_settled(t, list(record.T)) if t.size > 1 else None
-    if _settled_early(t, settled) and settled > t[0]:
-        axes[0, 0].set_xlim(float(t[0]), _view_end(t, settled))
+    if end is not None:
+        axes[0, 0].set_xlim(float(t[0]), end)
         _settled_note(axes[-1, 0], settled, float(t[-1]), "every channel stays within {} of its largest excursion from its last value", "the record's end")
     if zoom:
         axes[0, 1].set_xlim(start, stop)

@@ -646,10 +646,13 @@ def test_identification_ends_where_the_record_settles_and_zooms_on_the_slowest_m
         assert mod[0] == t[window][0] and mod[-2] <= start + 5 / 13.0 < mod[-1]
         np.testing.assert_array_equal(lines["record"].get_ydata(), y[np.isin(t, rec)])
         np.testing.assert_array_equal(lines["modes identified"].get_ydata(), 0.9 * y[np.isin(t, mod)])
-    for ax in whole:
+    for ax in whole:  # so does the whole-record column, up to its end a quarter past the settling
         lines = {line.get_label(): line for line in ax.get_lines()}
-        assert lines["record"].get_xdata().size == t.size and lines["modes identified"].get_xdata().size == window.sum()
+        rec, mod = lines["record"].get_xdata(), lines["modes identified"].get_xdata()
+        assert rec[0] == 0.0 and rec[-2] <= 1.25 * settle < rec[-1]
+        assert mod[0] == t[window][0] and mod[-2] <= 1.25 * settle < mod[-1]
     # a hub that drifts does not settle: the whole record, no note, and one column without a period
     drift = np.stack([hub + 1e-3 * t, tip], axis=1)
     fig = plotting.identification(t, drift, t, drift, ["hub", "tip"], "tap.csv")
     assert len(fig.axes) == 2 and fig.axes[0].get_xlim()[1] >= 99.9 and not fig.axes[1].texts
+    assert {line.get_label(): np.size(line.get_xdata()) for line in fig.axes[0].get_lines()}["record"] == t.size
