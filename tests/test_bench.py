@@ -765,3 +765,20 @@ def test_bench_plant_loss_and_device_fields_are_the_documented_ones():
            "device": "cpu", "device_kind": "cpu", "n_devices": 1, "cpu_model": "x", "jax_version": "0", "gpu": "no GPU available in this session"}
     table = format_table([row])
     assert "GPU: no GPU available in this session" in table and "123" in table.splitlines()[2] and "999" not in table.splitlines()[2]
+
+
+def test_readme_result_tables_are_the_committed_files_rendered():
+    """benchmarks/README.md's "Result tables" are what the command it gives prints for the
+    committed files, and that command names every benchmark file under benchmarks/results/:
+    a re-run file not pasted again, or a table edited by hand, fails here."""
+    import pathlib
+    import re
+
+    from benchmarks.bench_rollout import render_tables
+    bench = pathlib.Path(__file__).resolve().parent.parent / "benchmarks"
+    readme = (bench / "README.md").read_text(encoding="utf-8")
+    (command,) = re.findall(r"^cd benchmarks/results && python \.\./bench_rollout\.py --tables (.+?) +# the tables below$", readme, re.M)
+    paths = [p for pattern in command.split() for p in sorted((bench / "results").glob(pattern))]  # as the shell expands them
+    assert {p.name for p in paths} == {p.name for p in (bench / "results").glob("*.json") if p.name.startswith(("cpu_", "gpu_"))}
+    pasted = readme.split("is pasted below unchanged.\n\n", 1)[1]
+    assert pasted.rstrip("\n") == render_tables([str(p) for p in paths]).rstrip("\n")
