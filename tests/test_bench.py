@@ -4,6 +4,8 @@ the quick benchmark returns well-formed rows (tiny sizes; the throughput itself 
 
 import json
 import os
+import pathlib
+import re
 import subprocess
 import sys
 import time
@@ -771,9 +773,6 @@ def test_readme_result_tables_are_the_committed_files_rendered():
     """benchmarks/README.md's "Result tables" are what the command it gives prints for the
     committed files, and that command names every benchmark file under benchmarks/results/:
     a re-run file not pasted again, or a table edited by hand, fails here."""
-    import pathlib
-    import re
-
     from benchmarks.bench_rollout import render_tables
     bench = pathlib.Path(__file__).resolve().parent.parent / "benchmarks"
     readme = (bench / "README.md").read_text(encoding="utf-8")
