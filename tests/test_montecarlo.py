@@ -557,9 +557,10 @@ def test_percentile_bands_pair_each_percentile_with_its_mirror():
 
 
 def test_numpy_scalars_are_accepted_and_stored_as_plain_numbers():
-    numpy_cfg = MCConfig(n_scenarios=np.int64(40), chunk=np.int32(8), capacity=np.int64(64), seed=np.uint64(7), fuzzy_temperature=np.float32(0.5))
-    plain_cfg = MCConfig(n_scenarios=40, chunk=8, capacity=64, seed=7, fuzzy_temperature=0.5)
-    assert type(numpy_cfg.chunk) is int and type(numpy_cfg.seed) is int and type(numpy_cfg.fuzzy_temperature) is float
+    numpy_cfg = MCConfig(n_scenarios=np.int64(40), chunk=np.int32(8), capacity=np.int64(64), pade_order=np.int64(8), seed=np.uint64(7), fuzzy_temperature=np.float32(0.5))
+    plain_cfg = MCConfig(n_scenarios=40, chunk=8, capacity=64, pade_order=8, seed=7, fuzzy_temperature=0.5)
+    assert all(type(getattr(numpy_cfg, name)) is int for name in ("n_scenarios", "chunk", "capacity", "pade_order", "seed"))
+    assert type(numpy_cfg.fuzzy_temperature) is float
     assert numpy_cfg.fingerprint() == plain_cfg.fingerprint()
 
 
