@@ -368,6 +368,7 @@ def test_statistics_do_not_depend_on_the_device_count(tmp_path, full_run):
         (lambda: MCConfig(params={"tau_s": 1.0}), r"tau_s must be in \(0, 0.064\] s .*the capacity key of a tune or montecarlo config"),
         (lambda: MCConfig(controller="fuzzy", params={"k1": -1}), r"k1 must be finite and > 0; got -1"),
         (lambda: MCConfig(params={"tau_s": 0.0055}, delay="nearest"), r"whole number of samples .*delay = 'linear' or 'cubic' in by_name and the tune and montecarlo configs"),
+        (lambda: MCConfig(beam={"length_m": 1.0}), r"beam must be a BeamParams; got \{'length_m': 1.0\}"),
     ],
 )
 def test_impossible_descriptions_are_refused(make, match):
@@ -561,6 +562,7 @@ def test_numpy_scalars_are_accepted_and_stored_as_plain_numbers():
     plain_cfg = MCConfig(n_scenarios=40, chunk=8, capacity=64, pade_order=8, seed=7, fuzzy_temperature=0.5)
     assert all(type(getattr(numpy_cfg, name)) is int for name in ("n_scenarios", "chunk", "capacity", "pade_order", "seed"))
     assert type(numpy_cfg.fuzzy_temperature) is float
+    assert type(MCConfig(beam=BeamParams(density_kg_m3=np.float32(2700.0))).beam.density_kg_m3) is float  # the arm too
     assert numpy_cfg.fingerprint() == plain_cfg.fingerprint()
 
 
