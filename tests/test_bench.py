@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from benchmarks import baselines as bl
+from benchmarks import bench_rollout as br
 from benchmarks.bench_rollout import _rel_err, check_baselines, count_flops, flops_per_step, grad_ops_per_step
 from jaxflex.bench import BenchConfig, _cpu_model, bench_inputs, bench_plant, controller_and_params, format_table, make_benchmark, run_bench
 from jaxflex.rollout import rollout
@@ -123,8 +124,6 @@ def test_section_baselines_times_what_it_reports(monkeypatch):
     steps_per_second is batch * horizon / the median wall (``_best``: the fastest), with a
     clock whose successive timed walls are 1, 2, 3, ... s: nothing tested this section."""
     import types
-
-    from benchmarks import bench_rollout as br
 
     calls = []
 
@@ -660,14 +659,17 @@ def test_flop_count_of_each_kind_of_operation():
     assert count_flops(jaxpr) == (10 + 5 + 5 + 5 + 5 + 1, 5)
 
 
-def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(tmp_path, monkeypatch, capsys):
-    from benchmarks import bench_rollout as br
-
-    calls, interrupt = [], {"memory"}
+def _fake_sections(monkeypatch, interrupt, before_first_row=()):
+    """bench_rollout's matmul and memory sections replaced by two rows each; a section named in
+    ``interrupt`` raises KeyboardInterrupt after its first row, one in ``before_first_row``
+    before any (as while it compiles). Returns the list of sections called, in order."""
+    calls = []
 
     def fake(name):
         def section(emit, *args):
             calls.append(name)
+            if name in before_first_row:
+                raise KeyboardInterrupt
             emit({"kind": "fake", "i": 0})
             if name in interrupt:
                 raise KeyboardInterrupt
@@ -677,6 +679,12 @@ def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(
 
     monkeypatch.setattr(br, "section_matmul", fake("matmul"))
     monkeypatch.setattr(br, "section_memory", fake("memory"))
+    return calls
+
+
+def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(tmp_path, monkeypatch, capsys):
+    interrupt = {"memory"}
+    calls = _fake_sections(monkeypatch, interrupt)
     out, partial = tmp_path / "run.json", tmp_path / "run.json.partial"
     out.write_text('{"an earlier run": "its results"}')
     argv = ["--section", "memory", "matmul", "--out", str(out)]
@@ -687,6 +695,7 @@ def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(
 
     with pytest.raises(KeyboardInterrupt):
         br.main(argv)
+    assert "resume" not in capsys.readouterr().err  # a plain run says nothing of resuming
     assert out.read_text() == '{"an earlier run": "its results"}'  # no half-finished run over it
     doc, rows = saved(partial)
     assert rows == [("matmul", 0), ("matmul", 1), ("memory", 0)]  # on disk up to the interrupted row
@@ -710,15 +719,19 @@ def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(
     assert "is complete: nothing to resume" in capsys.readouterr().err
 
     doc["meta"]["complete"] = False
+    machine = ("cpu_model", "cpu_count", "affinity_cores", "device_kind", "n_devices", "xla_flags", "jax_version")  # rows of another would not compare
     for change, message in (
         (lambda d: None, "the options differ from those that wrote --out"),
-        (lambda d: d["meta"].update(jax_version="0.0.1"), "was measured on another machine or JAX setup (changed: jax_version: '0.0.1' -> "),
+        *((lambda d, field=field: d["meta"].update({field: "elsewhere"}), f"was measured on another machine or JAX setup (changed: {field}: 'elsewhere' -> ") for field in machine),
         (lambda d: d["meta"].pop("args"), "is not a document of a resumable run"),
-        (None, "is not a JSON document (Expecting property name"),
+        (lambda d: d.pop("rows"), "is not a document of a resumable run"),
+        ("[]", "is not a document of a resumable run"),
+        ('"text"', "is not a document of a resumable run"),
+        ("{not json", "is not a JSON document (Expecting property name"),
     ):
         edited = json.loads(json.dumps(doc))
-        if change is None:
-            out.write_text("{not json")
+        if isinstance(change, str):
+            out.write_text(change)
         else:
             change(edited)
             out.write_text(json.dumps(edited))
@@ -735,8 +748,68 @@ def test_an_interrupted_run_keeps_its_rows_and_a_resumed_one_runs_only_the_rest(
     assert "--resume needs --out FILE" in capsys.readouterr().err
     fresh = tmp_path / "fresh.json"
     assert br.main(["--section", "matmul", "--out", str(fresh), "--resume"]) == 0 and calls == ["matmul"]
-    assert "no interrupted run to resume (" in capsys.readouterr().err
+    assert f"no interrupted run to resume ({fresh}.partial does not exist), starting the run" in capsys.readouterr().err
     assert json.loads(fresh.read_text())["meta"]["complete"] is True
+    (tmp_path / "folder.json.partial").mkdir()  # a .partial that cannot be read is named, not a traceback
+    with pytest.raises(SystemExit):
+        br.main(["--section", "matmul", "--out", str(tmp_path / "folder.json"), "--resume"])
+    assert "folder.json.partial" in capsys.readouterr().err and calls == ["matmul"]
+
+
+def test_each_resume_is_recorded_beside_the_start_and_a_section_as_it_ends(tmp_path, monkeypatch):
+    """The document keeps the first run's start time and command, and each resume (a second
+    one too) adds its own to meta["resumed"], which the tables print. A section is recorded
+    finished when it ends, not with the next section's first row: a run interrupted while the
+    next one compiles resumes without measuring it again. --out is where the document goes,
+    not an option of what is measured: the same file named by another path resumes."""
+    interrupt = {"matmul"}
+    calls = _fake_sections(monkeypatch, interrupt, before_first_row={"memory"})
+    stamp = {"time_utc": "T0", "command": "c0"}
+    meta = br._meta
+    monkeypatch.setattr(br, "_meta", lambda: {**meta(), **stamp})  # sys.argv is pytest's own
+    monkeypatch.chdir(tmp_path)
+    argv = ["--section", "memory", "matmul", "--out", "run.json"]
+    with pytest.raises(KeyboardInterrupt):
+        br.main(argv)
+    assert "**Incomplete run**: sections finished: none;" in br.render_tables(["run.json.partial"])
+    stamp.update(time_utc="T1", command="c1")
+    interrupt.clear()
+    with pytest.raises(KeyboardInterrupt):
+        br.main([*argv, "--resume"])  # matmul ends; memory is interrupted before its first row
+    doc = json.loads((tmp_path / "run.json.partial").read_text())
+    assert doc["meta"]["sections_done"] == ["matmul"] and len(doc["rows"]) == 2
+    stamp.update(time_utc="T2", command="c2")
+    monkeypatch.setattr(br, "section_memory", lambda emit, *a: (calls.append("memory"), emit({"kind": "fake", "i": 0})))
+    calls.clear()
+    monkeypatch.chdir("/")
+    assert br.main(["--section", "memory", "matmul", "--out", str(tmp_path / "run.json"), "--resume"]) == 0 and calls == ["memory"]
+    doc = json.loads((tmp_path / "run.json").read_text())
+    assert [r["section"] for r in doc["rows"]] == ["matmul", "matmul", "memory"]
+    assert (doc["meta"]["time_utc"], doc["meta"]["command"]) == ("T0", "c0")
+    assert [(r["time_utc"], r["command"]) for r in doc["meta"]["resumed"]] == [("T1", "c1"), ("T2", "c2")]
+    table = br.render_tables([str(tmp_path / "run.json")])
+    assert "Command: `c0`" in table and all(f"Resumed {t} (load average " in table and f"): `{c}`" in table for t, c in (("T1", "c1"), ("T2", "c2")))
+
+
+def test_a_failed_final_write_leaves_the_partial_document(tmp_path, monkeypatch):
+    """OUT.partial is removed only once --out is written: a final write that fails (a full
+    disk) loses no measured row."""
+    from jaxflex import fileio
+
+    _fake_sections(monkeypatch, set())
+    out = tmp_path / "run.json"
+    write_json = fileio.write_json
+
+    def full_disk(path, data):
+        if os.fspath(path) == str(out):
+            raise OSError("No space left on device")
+        write_json(path, data)
+
+    monkeypatch.setattr(fileio, "write_json", full_disk)
+    with pytest.raises(OSError):
+        br.main(["--section", "memory", "matmul", "--out", str(out)])
+    doc = json.loads((tmp_path / "run.json.partial").read_text())
+    assert len(doc["rows"]) == 4 and doc["meta"]["sections_done"] == ["matmul", "memory"]
 
 
 def test_bench_plant_loss_and_device_fields_are_the_documented_ones():

@@ -124,6 +124,24 @@ def test_check_keys_refuses_a_value_that_is_not_a_table():
         assert not isinstance(refused.value, fileio.UnknownKeys)
 
 
+@pytest.mark.parametrize("write", [lambda p: fileio.write_text(p, "new"), lambda p: fileio.write_json(p, {"new": 2})])
+def test_a_write_interrupted_before_its_rename_leaves_the_earlier_file(tmp_path, monkeypatch, write):
+    """write_text and write_json (bench_rollout's OUT.partial, rewritten after every row)
+    replace the file in one step: a Ctrl-C before the rename leaves the earlier file whole,
+    and no temporary beside it."""
+    path = tmp_path / "run.json.partial"
+    path.write_text('{"old": 1}')
+
+    def interrupted(src, dst):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fileio.os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        write(path)
+    monkeypatch.undo()
+    assert path.read_text() == '{"old": 1}' and os.listdir(tmp_path) == ["run.json.partial"]
+
+
 def test_write_text_writes_utf8_whatever_the_text(tmp_path):
     """Write_text writes UTF-8 (reports hold ±, °, µ, ≥): the bytes on disk are the UTF-8
     encoding of the text."""

@@ -490,6 +490,7 @@ def test_digest_ignores_key_order_and_changed_fields_names_what_differs():
     assert fileio.changed_fields(a, {**b, "seed": 3, "new_option": 1}) == "changed: seed: 0 -> 3"
     assert fileio.changed_fields(a, {**b, "new_option": 1}) == "the configuration changed"
     assert fileio.changed_fields(None, a) == "the configuration changed"
+    assert fileio.changed_fields("damaged", a) == "the configuration changed"  # a record that is no table names no field
     # another program (an upgrade, an edited source) is no option to change back: it says so
     assert fileio.changed_fields({**a, "program": "x"}, {**a, "program": "y", "seed": 2}) == (
         "changed: program: 'x' -> 'y', seed: 0 -> 2; no option matches another program: start again in another --out, or resume with the program that wrote it")
@@ -497,6 +498,7 @@ def test_digest_ignores_key_order_and_changed_fields_names_what_differs():
     now = {**a, "scenarios": {"dt": 0.002, "horizon_s": 3.0, "new": 1}, "percentiles": [5, 95], "beam": None}
     assert fileio.changed_fields({**a, "percentiles": [5, 50, 95], "beam": {"length_m": 1.0}}, now) == (
         "changed: beam: {'length_m': 1.0} -> None, percentiles: [5, 50, 95] -> [5, 95], scenarios.dt: 0.001 -> 0.002")
+    assert fileio.changed_fields({**a, "beam": None}, {**a, "beam": {"length_m": 1.0}}) == "changed: beam: None -> {'length_m': 1.0}"  # not a TypeError
 
 
 def test_to_jsonable_keeps_non_finite_numbers_when_asked():
