@@ -694,9 +694,9 @@ def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model
     A record that settles within ZOOM_FRACTION of its length (every channel within
     SETTLED_FRACTION of its largest excursion from its last value) is drawn up to a quarter
     past that time, with a note under the axis: a 100 s record of a decay over 10 s was a solid
-    band. Each column draws only the samples it shows (and one either side). With ``period_s`` (the slowest mode's period, s), a second column shows the first
+    band. With ``period_s`` (the slowest mode's period, s), a second column shows the first
     ZOOM_PERIODS periods from the window's start, where the record and the model can be told
-    apart.
+    apart. Each column draws only the samples it shows, and one either side.
     """
     t, record, t_model, model = (np.asarray(a, dtype=float) for a in (t, record, t_model, model))
     zoom = period_s is not None
