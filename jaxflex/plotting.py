@@ -693,8 +693,8 @@ def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model
 
     A record that settles within ZOOM_FRACTION of its length (every channel within
     SETTLED_FRACTION of its largest excursion from its last value) is drawn up to a quarter
-    past that time, with a note under the axis: a 100 s record of a decay over 10 s was a solid
-    band. With ``period_s`` (the slowest mode's period, s), a second column shows the first
+    past that time, with a note under the axis (a 100 s record of a decay over 10 s was a solid
+    band), unless the window identified starts after that. With ``period_s`` (the slowest mode's period, s), a second column shows the first
     ZOOM_PERIODS periods from the window's start, where the record and the model can be told
     apart. Each column draws only the samples it shows, and one either side.
     """
@@ -702,8 +702,10 @@ def identification(t: np.ndarray, record: np.ndarray, t_model: np.ndarray, model
     zoom = period_s is not None
     fig, axes = plt.subplots(len(names), 2 if zoom else 1, figsize=(13.0 if zoom else 9.0, 1.2 + 2.0 * len(names)), sharex="col", squeeze=False, gridspec_kw={"width_ratios": [2, 1]} if zoom else None)
     settled = _run_settled(t, list(record.T)) if t.size > 1 else None
-    end = _view_end(t, settled) if _settled_early(t, settled) and settled > t[0] else None
     start = float(t_model[0])
+    end = _view_end(t, settled) if _settled_early(t, settled) and settled > t[0] else None
+    if end is not None and start >= end:  # a window identified after the record settled would be cut off: the whole record
+        end = None
     stop = start + ZOOM_PERIODS * float(period_s) if zoom else None
     # each column draws the samples it shows and one either side, which carry the lines to its edges
     drawn = [(_shown(t, None, end), _shown(t_model, None, end))] + ([(_shown(t, start, stop), _shown(t_model, start, stop))] if zoom else [])

@@ -656,3 +656,8 @@ def test_identification_ends_where_the_record_settles_and_zooms_on_the_slowest_m
     fig = plotting.identification(t, drift, t, drift, ["hub", "tip"], "tap.csv")
     assert len(fig.axes) == 2 and fig.axes[0].get_xlim()[1] >= 99.9 and not fig.axes[1].texts
     assert {line.get_label(): np.size(line.get_xdata()) for line in fig.axes[0].get_lines()}["record"] == t.size
+    # nor is a record whose window identified starts after it settled: the view would hide the model
+    late = t >= 50.0
+    fig = plotting.identification(t, record, t[late], record[late], ["hub", "tip"], "tap.csv")
+    assert fig.axes[0].get_xlim()[1] >= 99.9 and not fig.axes[1].texts
+    assert {line.get_label(): np.size(line.get_xdata()) for line in fig.axes[0].get_lines()}["modes identified"] == late.sum()
