@@ -781,7 +781,8 @@ def test_each_resume_is_recorded_beside_the_start_and_a_section_as_it_ends(tmp_p
     stamp.update(time_utc="T2", command="c2")
     monkeypatch.setattr(br, "section_memory", lambda emit, *a: (calls.append("memory"), emit({"kind": "fake", "i": 0})))
     calls.clear()
-    monkeypatch.chdir("/")
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
     assert br.main(["--section", "memory", "matmul", "--out", str(tmp_path / "run.json"), "--resume"]) == 0 and calls == ["memory"]
     doc = json.loads((tmp_path / "run.json").read_text())
     assert [r["section"] for r in doc["rows"]] == ["matmul", "matmul", "memory"]
@@ -846,11 +847,10 @@ def test_readme_result_tables_are_the_committed_files_rendered():
     """benchmarks/README.md's "Result tables" are what the command it gives prints for the
     committed files, and that command names every benchmark file under benchmarks/results/:
     a re-run file not pasted again, or a table edited by hand, fails here."""
-    from benchmarks.bench_rollout import render_tables
     bench = pathlib.Path(__file__).resolve().parent.parent / "benchmarks"
     readme = (bench / "README.md").read_text(encoding="utf-8")
     (command,) = re.findall(r"^cd benchmarks/results && python \.\./bench_rollout\.py --tables (.+?) +# the tables below$", readme, re.M)
-    paths = [p for pattern in command.split() for p in sorted((bench / "results").glob(pattern))]  # as the shell expands them
+    paths = [bench / "results" / name for name in command.split()]  # named one by one: a glob's order follows the shell's locale
     assert {p.name for p in paths} == {p.name for p in (bench / "results").glob("*.json") if p.name.startswith(("cpu_", "gpu_"))}
     pasted = readme.split("is pasted below unchanged.\n\n", 1)[1]
-    assert pasted.rstrip("\n") == render_tables([str(p) for p in paths]).rstrip("\n")
+    assert pasted.rstrip("\n") == br.render_tables([str(p) for p in paths]).rstrip("\n")
