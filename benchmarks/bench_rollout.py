@@ -145,11 +145,13 @@ class Emitter:
         print(json.dumps(_jsonable(row)), flush=True)
         self.save()
 
-    def save(self) -> None:
-        if self.out is not None:
+    def save(self, path: str | None = None) -> None:
+        """Write the result document to ``path``, by default ``out`` (nothing without either)."""
+        path = path or self.out
+        if path is not None:
             from jaxflex.fileio import write_json
 
-            write_json(self.out, {"meta": self.meta, "rows": self.rows})
+            write_json(path, {"meta": self.meta, "rows": self.rows})
 
 
 def _jsonable(value: Any) -> Any:
@@ -986,9 +988,7 @@ def main(argv: list[str] | None = None) -> int:
     meta["peak_device_bytes"] = _peak_device_bytes()
     meta["complete"] = True
     if args.out is not None:
-        from jaxflex.fileio import write_json
-
-        write_json(args.out, {"meta": meta, "rows": emit.rows})
+        emit.save(args.out)
         if os.path.exists(partial):
             os.remove(partial)
     return 0
